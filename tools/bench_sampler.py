@@ -1,0 +1,102 @@
+"""Time the L0-Sampler (each kind) against NeRF's sample_pdf on the same rays.
+
+Usage:
+    python tools/bench_sampler.py [--rays 4096] [--points 128] [--samples 64] [--repeat 50]
+                                  [--device cpu|cuda|all] [--dtype float32|float64]
+
+Both samplers get the same NeuS-like rays: N sorted positions with a sharp surface peak.
+``sample_pdf`` gets the N-1 section weights (bins = the N positions), ``sample_l0`` the N
+point weights, so both draw from the same coarse information. Prints median times and the
+ratio to ``sample_pdf``, measured side by side in one process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import statistics
+import time
+
+import torch
+
+from neus_l0.sampling import sample_l0, sample_pdf
+
+
+def make_rays(n_rays: int, n_points: int, device: str, dtype: torch.dtype,
+              seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """NeuS-like rays: positions (R, N) in [near, far], point weights (R, N), sections (R, N-1)."""
+    g = torch.Generator().manual_seed(seed)
+    near = 0.5 + torch.rand(n_rays, 1, generator=g)
+    t = near + 2.0 * torch.linspace(0, 1, n_points).expand(n_rays, -1)
+    t = t + torch.rand(n_rays, n_points, generator=g) * (2.0 / n_points) * 0.5
+    t, _ = torch.sort(t, dim=-1)
+    surf = near + 0.3 + 1.4 * torch.rand(n_rays, 1, generator=g)
+    width = 0.005 + 0.05 * torch.rand(n_rays, 1, generator=g)
+    w = torch.exp(-0.5 * ((t - surf) / width) ** 2)
+    w_sec = 0.5 * (w[:, 1:] + w[:, :-1])
+    return (t.to(device=device, dtype=dtype), w.to(device=device, dtype=dtype),
+            w_sec.to(device=device, dtype=dtype))
+
+
+def time_fn(fn, device: str, repeat: int, warmup: int = 5) -> float:
+    """Median wall time of fn() in milliseconds (synchronising CUDA)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        if device == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn()
+        if device == "cuda":
+            torch.cuda.synchronize()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def bench(device: str, args: argparse.Namespace) -> list[tuple[str, float, float]]:
+    """Return (name, median ms, ratio to sample_pdf) rows for one device, interleaved runs."""
+    dtype = getattr(torch, args.dtype)
+    t, w, w_sec = make_rays(args.rays, args.points, device, dtype)
+    n = args.samples
+    fns = {
+        "sample_pdf (HVS)": lambda: sample_pdf(t, w_sec, n, det=False),
+        "sample_l0 exp": lambda: sample_l0(t, w, n, kind="exp", det=False),
+        "sample_l0 inverse": lambda: sample_l0(t, w, n, kind="inverse", det=False),
+        "sample_l0 linear": lambda: sample_l0(t, w, n, kind="linear", det=False),
+    }
+    # Interleave rounds so that drifting machine load hits every sampler alike.
+    per = {k: [] for k in fns}
+    rounds = 5
+    for _ in range(rounds):
+        for k, fn in fns.items():
+            per[k].append(time_fn(fn, device, max(args.repeat // rounds, 1), warmup=2))
+    med = {k: statistics.median(v) for k, v in per.items()}
+    base = med["sample_pdf (HVS)"]
+    return [(k, v, v / base) for k, v in med.items()]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--rays", type=int, default=4096)
+    p.add_argument("--points", type=int, default=128)
+    p.add_argument("--samples", type=int, default=64)
+    p.add_argument("--repeat", type=int, default=50)
+    p.add_argument("--device", default="all", choices=["cpu", "cuda", "all"])
+    p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    args = p.parse_args()
+    devices = ["cpu", "cuda"] if args.device == "all" else [args.device]
+    devices = [d for d in devices if d == "cpu" or torch.cuda.is_available()]
+    print(f"torch {torch.__version__}, {platform.processor() or platform.machine()}, "
+          f"{torch.get_num_threads()} threads; {args.rays} rays x {args.points} points -> "
+          f"{args.samples} samples, {args.dtype}, det=False")
+    for dev in devices:
+        name = torch.cuda.get_device_name() if dev == "cuda" else "cpu"
+        print(f"\n{dev} ({name})")
+        print(f"{'sampler':<20} {'median ms':>10} {'x sample_pdf':>13}")
+        for k, ms, ratio in bench(dev, args):
+            print(f"{k:<20} {ms:>10.3f} {ratio:>13.2f}")
+
+
+if __name__ == "__main__":
+    main()
