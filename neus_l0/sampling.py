@@ -1,38 +1,43 @@
 """Importance samplers along rays: NeRF's piecewise-constant PDF and the L0-Sampler.
 
 Pure tensor functions over the last axis; any leading batch shape ("...") is allowed,
-float32 and float64, CPU and CUDA. Names used throughout:
+float32 and float64, CPU and CUDA, no Python loops over rays or samples. Names:
 
 * ``t``       (..., N)    sorted positions along a ray (the L0 interpolation nodes)
 * ``bins``    (..., N+1)  sorted bin edges (NeRF's piecewise-constant PDF)
-* ``weights`` (..., N)    non-negative weights: at the positions ``t`` for ``sample_l0``,
-                          of the bins ``[bins_i, bins_{i+1}]`` for ``sample_pdf``
-* ``u``       (..., n)    quantiles in [0, 1) that the inverse CDF maps to positions
+* ``weights`` (..., N)    weights: at the positions ``t`` for ``sample_l0``, of the bins
+                          ``[bins_i, bins_{i+1}]`` for ``sample_pdf``
+* ``u``       (..., n)    sorted quantiles in [0, 1) that the inverse CDF maps to positions
 
-Weights may be any numbers: NaN, +-inf and negative values are treated as zero, and the
-weights of each ray are rescaled by their maximum before use (the sampled distribution does
-not depend on their scale, so 1e-30 or 1e30 are as good as 1). A ray whose weights carry no
-mass at all is sampled uniformly over its range. Outputs are sorted, lie inside the input
-range, contain no NaN or inf, and carry no gradient.
+Weights may be any numbers: NaN, +-inf and negative values count as zero, and each ray's
+weights are divided by their maximum (the distribution does not depend on their scale, so
+1e-30 and 1e30 are as good as 1); after that, weights below the smallest normal float
+(a ratio beyond 1e38 in float32) are flushed to zero. A ray whose weights carry no mass is
+sampled uniformly over its range. Outputs are sorted, inside the input range, finite, and
+carry no gradient.
 
-The L0-Sampler (Li & Zhang, CVPR 2024) interpolates the point weights ``w_i`` (after
-``maxblur``) on each interval ``[t_i, t_{i+1}]`` of length ``D`` with ``a = w_i``, ``b = w_{i+1}``,
-``L = ln b - ln a`` and ``s`` in [0, 1]:
+The L0-Sampler (Li & Zhang, CVPR 2024) interpolates the point weights (after ``maxblur``)
+on each interval ``[t_i, t_{i+1}]`` of length ``D``, with ``a = w_i``, ``b = w_{i+1}``,
+``L = ln(b/a)`` and ``s`` in [0, 1]:
 
-======== ===================== ==================== =============================
-kind     density on [0, 1]     mass / D             inverse CDF s(q), q in [0, 1)
-======== ===================== ==================== =============================
-exp      a (b/a)^s             a f(L)               log1p(q expm1(L)) / L
-inverse  ab / ((a-b) s + b)    b / f(L)             expm1(-q L) / expm1(-L)
-linear   a + (b-a) s           (a+b) / 2            q(a+b) / (a + sqrt((1-q)a^2 + q b^2))
-======== ===================== ==================== =============================
+======== ===================== ===================== =====================================
+kind     density on [0, 1]     mass / D              inverse CDF s(q), q in [0, 1]
+======== ===================== ===================== =====================================
+exp      a (b/a)^s             a expm1(L) / L        log1p(q expm1(L)) / L
+inverse  ab / ((a-b) s + b)    b L / expm1(L)        expm1(-q L) / expm1(-L)
+linear   a + (b-a) s           (a + b) / 2           q (a+b) / (a + sqrt((1-q)a^2 + q b^2))
+======== ===================== ===================== =====================================
 
-with ``f(L) = expm1(L) / L`` (the logarithmic mean of a and b, divided by a). The inverse
-CDFs are written for ``L <= 0`` only and mirrored (``s(q, L) = 1 - s(1-q, -L)``), which keeps
-every ``exp``/``expm1`` argument non-positive: no overflow for any weight ratio. Where ``|L|``
-is below ``eps ** (1/3)`` the 0/0 forms are replaced by their Taylor series (truncation below
-float precision); no epsilon is ever added to a denominator. An interval with a zero
-endpoint (possible only with ``blur=False``) carries no mass for ``exp`` and ``inverse``.
+Two implementations share these formulas. ``piece_mass`` and ``piece_inverse_cdf`` are the
+plain ones, per piece, written as DESIGN.md states them: closed forms, and the second-order
+series where ``|L| < eps^(1/3)`` (never an epsilon in a denominator). ``sample_l0`` runs a
+fused form built for speed, with the same numbers to rounding (the tests hold both to a
+float64 quadrature reference): ``expm1(L)`` is computed without a transcendental as
+``E = (b - a) / a`` (exact to rounding, since ``b - a`` is), ``L = log1p(E)``, and
+``a == b`` (``E == 0``) uses ``E = L = sqrt(tiny)``, for which ``log1p(q E) / L`` and
+``a E / L`` equal their limits ``q`` and ``a`` to within 1e-19. Every closed form is exact
+to rounding for ``L != 0``, so no series is needed there. Flushing sub-normal weights bounds
+``|L|`` by ln(1/tiny) (87 in float32), so no exponential overflows.
 """
 
 from __future__ import annotations
@@ -49,6 +54,9 @@ __all__ = [
 KINDS = ("exp", "inverse", "linear")
 
 
+# ----------------------------------------------------------------------------- weights
+
+
 def sanitize_weights(weights: Tensor) -> Tensor:
     """Replace NaN, +-inf and negative weights by zero.
 
@@ -58,22 +66,7 @@ def sanitize_weights(weights: Tensor) -> Tensor:
     Returns:
         (..., N) finite, non-negative weights of the same dtype.
     """
-    finite = torch.isfinite(weights) & (weights > 0)
-    return torch.where(finite, weights, torch.zeros((), dtype=weights.dtype,
-                                                    device=weights.device))
-
-
-def _normalize_max(weights: Tensor) -> Tensor:
-    """Divide each ray's (finite, non-negative) weights by their maximum; all-zero rays stay 0.
-
-    Args:
-        weights: (..., N) finite non-negative weights.
-
-    Returns:
-        (..., N) weights in [0, 1].
-    """
-    wmax = weights.amax(dim=-1, keepdim=True)  # (..., 1)
-    return weights / torch.where(wmax > 0, wmax, torch.ones_like(wmax))
+    return torch.nan_to_num(weights, nan=0.0, posinf=0.0, neginf=0.0).clamp_min_(0.0)
 
 
 def maxblur(weights: Tensor, pad: float = 0.01) -> Tensor:
@@ -90,10 +83,38 @@ def maxblur(weights: Tensor, pad: float = 0.01) -> Tensor:
         (..., N) blurred weights, each >= pad.
     """
     w = sanitize_weights(weights)
-    pair = torch.maximum(w[..., :-1], w[..., 1:])  # (..., N-1) max of neighbours
-    left = torch.cat([w[..., :1], pair], dim=-1)  # max(w_{i-1}, w_i)
-    right = torch.cat([pair, w[..., -1:]], dim=-1)  # max(w_i, w_{i+1})
-    return 0.5 * left + 0.5 * right + pad  # halves first: no overflow near float max
+    half = 0.5 * torch.maximum(w[..., :-1], w[..., 1:])  # (..., N-1); halves: no overflow
+    # h_{-1} = w_0 / 2, h_{N-1} = w_{N-1} / 2, so that w'_i = h_{i-1} + h_i + pad.
+    h = torch.cat([0.5 * w[..., :1], half, 0.5 * w[..., -1:]], dim=-1)  # (..., N+1)
+    return (h[..., :-1] + h[..., 1:]).add_(pad)
+
+
+def _prepare_weights(weights: Tensor, dtype: torch.dtype, blur: bool, pad: float) -> Tensor:
+    """Sanitise (and blur), divide by the ray maximum, and bound ratios by 1/tiny.
+
+    Args:
+        weights: (R, N) any weights.
+        blur, pad: apply :func:`maxblur`. With ``pad > 0`` no weight can be 0, and weights
+            below ``tiny`` (the ray maximum was above pad / tiny) are raised to ``tiny``;
+            otherwise they are flushed to 0.
+
+    Returns:
+        (R, N) weights in {0} U [tiny, 1] (in [tiny, 1] with blur and pad > 0); a ray of
+        zeros stays zeros.
+    """
+    w = weights.detach().to(dtype)
+    w = maxblur(w, pad) if blur else sanitize_weights(w)
+    wmax = w.amax(dim=-1, keepdim=True)  # (R, 1)
+    w = w / torch.where(wmax > 0, wmax, 1.0)
+    tiny = torch.finfo(dtype).tiny
+    if _strictly_positive(blur, pad):
+        return w.clamp_min_(tiny)
+    return w.masked_fill_(w < tiny, 0.0)
+
+
+def _strictly_positive(blur: bool, pad: float) -> bool:
+    """Whether prepared weights can never be 0 (maxblur with a positive pad)."""
+    return blur and pad > 0
 
 
 def quantiles(shape: tuple[int, ...], n_samples: int, det: bool,
@@ -117,54 +138,70 @@ def quantiles(shape: tuple[int, ...], n_samples: int, det: bool,
     k = torch.arange(n_samples, dtype=dtype, device=device)
     if det:
         return ((k + 0.5) / n_samples).expand(*shape, n_samples).contiguous()
-    jitter = torch.rand(*shape, n_samples, generator=generator, dtype=dtype, device=device)
-    u = (k + jitter) / n_samples
+    u = torch.rand(*shape, n_samples, generator=generator, dtype=dtype, device=device)
+    u = u.add_(k).div_(n_samples)
     # (k + U)/n can round up to 1 in float32 when U is within an ulp of 1.
     return u.clamp_(max=1.0 - torch.finfo(dtype).eps)
 
 
-def _invert_cdf(cdf: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-    """Locate quantiles in a piecewise CDF.
+# ----------------------------------------------------------------------------- the CDF
+
+
+def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Normalised cumulative masses, falling back to uniform where a ray has none.
 
     Args:
-        cdf: (..., M+1) non-decreasing, cdf[..., 0] == 0 and cdf[..., -1] == 1 exactly.
-        u: (..., n) quantiles in [0, 1).
+        mass: (R, M) finite non-negative piece masses.
+        d: (R, M) piece lengths, used as masses for rays whose ``mass`` sums to 0; where the
+            lengths sum to 0 too, every piece gets mass 1.
 
     Returns:
-        idx: (..., n) int64 piece index i in [0, M-1] with cdf_i <= u < cdf_{i+1}.
-        q: (..., n) the fraction of piece i's mass below u, in [0, 1].
+        lo: (R, M) cdf at the start of each piece (exactly the previous piece's ``hi``).
+        hi: (R, M) cdf at the end of each piece; ``hi[:, -1] == 1`` exactly.
+        degenerate: (R, 1) bool, True where ``mass`` was replaced.
     """
-    n_pieces = cdf.shape[-1] - 1
-    idx = torch.searchsorted(cdf, u, right=True).sub_(1).clamp_(0, n_pieces - 1)
-    lo = torch.gather(cdf, -1, idx)
-    hi = torch.gather(cdf, -1, idx + 1)
-    width = hi - lo
-    q = torch.where(width > 0, (u - lo) / torch.where(width > 0, width, 1.0), 0.0)
-    return idx, q.clamp_(0.0, 1.0)
+    degenerate = mass.sum(dim=-1, keepdim=True) <= 0  # (R, 1)
+    no_length = d.sum(dim=-1, keepdim=True) <= 0
+    mass = torch.addcmul(mass, degenerate.to(mass.dtype), d + no_length.to(d.dtype))
+    csum = torch.cumsum(mass, dim=-1)
+    hi = csum / csum[:, -1:]
+    lo = torch.nn.functional.pad(hi[:, :-1], (1, 0))
+    return lo, hi, degenerate
 
 
-def _normalized_cdf(mass: Tensor, fallback: Tensor) -> tuple[Tensor, Tensor]:
-    """Cumulative distribution over pieces, falling back where a ray has no mass.
+def _locate(hi: Tensor, u: Tensor) -> Tensor:
+    """Piece index i with lo_i <= u < hi_i; hi (R, M), u (R, n) -> (R, n) int64."""
+    return torch.searchsorted(hi, u, right=True).clamp_(max=hi.shape[-1] - 1)
+
+
+def _fraction(u: Tensor, lo: Tensor, inv_width: Tensor, idx: Tensor) -> Tensor:
+    """q = (u - lo_i) / width_i in [0, 1] for each sample; all (R, n) but lo, inv_width (R, M)."""
+    q = (u - torch.gather(lo, -1, idx)).mul_(torch.gather(inv_width, -1, idx))
+    return q.clamp_(0.0, 1.0)
+
+
+def _inverse_width(lo: Tensor, hi: Tensor) -> Tensor:
+    """1 / (hi - lo), finite (float max) where a piece has (almost) no mass."""
+    fmax = torch.finfo(lo.dtype).max
+    return torch.reciprocal(hi - lo).clamp_(max=fmax)
+
+
+def _finish(samples: Tensor, t: Tensor) -> Tensor:
+    """Clamp samples into [t_0, t_last] and repair 1-ulp disorder from rounding.
 
     Args:
-        mass: (..., M) finite non-negative piece masses.
-        fallback: (..., M) finite non-negative masses used for rays whose ``mass`` sums to 0
-            (e.g. the piece lengths, for uniform sampling); where those sum to 0 too, every
-            piece gets equal mass.
+        samples: (R, n) samples, sorted up to rounding.
+        t: (R, N) the sorted nodes or bin edges they were drawn between.
 
     Returns:
-        cdf: (..., M+1) with cdf[..., 0] = 0 and cdf[..., -1] = 1 exactly.
-        degenerate: (..., 1) bool, True where ``mass`` was replaced.
+        (R, n) sorted samples inside [t_0, t_last].
     """
-    degenerate = mass.sum(dim=-1, keepdim=True) <= 0
-    fb_empty = fallback.sum(dim=-1, keepdim=True) <= 0
-    fallback = torch.where(fb_empty, torch.ones_like(fallback), fallback)
-    mass = torch.where(degenerate, fallback, mass)
-    csum = torch.cumsum(mass, dim=-1)  # (..., M)
-    total = csum[..., -1:]
-    cdf = torch.cat([torch.zeros_like(total), csum[..., :-1] / total, torch.ones_like(total)],
-                    dim=-1)
-    return cdf, degenerate
+    samples = torch.maximum(samples, t[:, :1])
+    samples = torch.cummax(samples, dim=-1).values
+    return torch.minimum(samples, t[:, -1:])
+
+
+# ----------------------------------------------------------------------------- samplers
 
 
 @torch.no_grad()
@@ -187,41 +224,16 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
                          f"{tuple(bins.shape)} vs {tuple(weights.shape)}")
     if weights.shape[-1] < 1:
         raise ValueError("sample_pdf needs at least one bin")
-    bins = bins.detach()
-    w = _normalize_max(sanitize_weights(weights.detach().to(bins.dtype)))  # (..., N)
-    width = (bins[..., 1:] - bins[..., :-1]).clamp_min(0)  # (..., N)
-    cdf, _ = _normalized_cdf(w, width)  # (..., N+1)
-    u = quantiles(cdf.shape[:-1], n_samples, det, generator, bins.dtype, bins.device)
-    idx, q = _invert_cdf(cdf, u)  # (..., n)
-    lo = torch.gather(bins, -1, idx)
-    d = torch.gather(width, -1, idx)
-    return _finish(lo + q * d, bins)
-
-
-def _finish(samples: Tensor, t: Tensor) -> Tensor:
-    """Clamp samples into [t_0, t_last] and repair 1-ulp disorder from rounding.
-
-    Args:
-        samples: (..., n) samples, sorted up to rounding.
-        t: (..., N) the sorted nodes or bin edges they were drawn between.
-
-    Returns:
-        (..., n) sorted samples inside [t_0, t_last].
-    """
-    samples = torch.maximum(samples, t[..., :1])
-    samples = torch.cummax(samples, dim=-1).values
-    return torch.minimum(samples, t[..., -1:])
-
-
-def _expm1_over(L: Tensor, small: Tensor) -> Tensor:
-    """f(L) = expm1(L) / L, with its series 1 + L/2 + L^2/6 where ``small``."""
-    series = 1.0 + L * (0.5 + L / 6.0)
-    return torch.where(small, series, torch.expm1(L) / torch.where(small, 1.0, L))
-
-
-def _series_threshold(dtype: torch.dtype) -> float:
-    """|L| below which closed forms switch to their second-order series (eps ** (1/3))."""
-    return float(torch.finfo(dtype).eps) ** (1.0 / 3.0)
+    batch = bins.shape[:-1]
+    bins = bins.detach().reshape(-1, bins.shape[-1])  # (R, N+1)
+    w = _prepare_weights(weights.reshape(-1, weights.shape[-1]), bins.dtype, False, 0.0)
+    d = (bins[:, 1:] - bins[:, :-1]).clamp_min(0)  # (R, N)
+    lo, hi, _ = _cdf(w, d)
+    u = quantiles((bins.shape[0],), n_samples, det, generator, bins.dtype, bins.device)
+    idx = _locate(hi, u)  # (R, n)
+    q = _fraction(u, lo, _inverse_width(lo, hi), idx)
+    out = torch.addcmul(torch.gather(bins, -1, idx), q, torch.gather(d, -1, idx))
+    return _finish(out, bins).reshape(*batch, n_samples)
 
 
 @torch.no_grad()
@@ -253,125 +265,121 @@ def sample_l0(t: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
         raise ValueError("sample_l0 needs at least two positions per ray (N >= 2)")
     batch = t.shape[:-1]
     t = t.detach().reshape(-1, t.shape[-1])  # (R, N)
-    w = weights.detach().to(t.dtype).reshape(t.shape)
-    w = maxblur(w, pad) if blur else sanitize_weights(w)
-    w = _normalize_max(w)  # (R, N) in [0, 1]
+    w = _prepare_weights(weights.reshape(t.shape), t.dtype, blur, pad)  # (R, N)
     a, b = w[:, :-1], w[:, 1:]  # (R, M) endpoint weights of the M = N-1 intervals
-    d = (t[:, 1:] - t[:, :-1]).clamp_min(0)  # (R, M) interval lengths
-    t_lo = t[:, :-1]
+    d = (t[:, 1:] - t[:, :-1]).clamp_min_(0)  # (R, M) lengths
     u = quantiles((t.shape[0],), n_samples, det, generator, t.dtype, t.device)  # (R, n)
-    if kind == "exp":
-        out = _sample_exp(a, b, d, t_lo, u)
-    else:
-        out = _sample_q_kind(a, b, d, t_lo, u, kind)
-    return _finish(out, t).reshape(*batch, n_samples)
+    zeros = not _strictly_positive(blur, pad)  # can a piece have a zero end?
+    sampler = {"exp": _fused_exp, "inverse": _fused_inverse, "linear": _fused_linear}[kind]
+    return _finish(sampler(a, b, d, t[:, :-1], u, zeros), t).reshape(*batch, n_samples)
 
 
-def _gather_rows(table: Tensor, idx: Tensor) -> Tensor:
-    """Rows of a per-interval table picked by per-sample interval indices.
+def _growth(a: Tensor, b: Tensor, zeros: bool) -> tuple[Tensor, Tensor]:
+    """E = expm1(L) = (b - a) / a and L = ln(b/a) per piece, with the module's conventions.
+
+    ``L = sign(b - a) log1p(|b - a| / min(a, b))``: the argument of log1p is exact to
+    rounding whichever end is larger, so L keeps full relative precision both when a ~ b
+    and when one end is far below the other (where log1p(E), E ~ -1, would not). Both E
+    and the log1p argument get ``sqrt(tiny)`` added: a no-op in floating point for every
+    piece with a != b (their magnitude is at least eps / 2, and eps^2 / 4 > sqrt(tiny)),
+    and the value that stands for a constant piece where a == b.
 
     Args:
-        table: (R, M, C) C values per interval.
-        idx: (R, n) int64 interval index of each sample.
+        a, b: (R, M) endpoint weights in {0} U [tiny, 1].
+        zeros: whether a or b can be 0 (else the masking is skipped).
 
     Returns:
-        (R, n, C) the picked rows (one indexed copy of C contiguous values per sample).
+        E: (R, M); -1 where a == 0 or b == 0 (L = -inf there: such pieces have no mass).
+        L: (R, M).
     """
-    n_rays, n_int, n_ch = table.shape
-    offset = torch.arange(n_rays, device=idx.device).unsqueeze(-1) * n_int  # (R, 1)
-    flat = (idx + offset).reshape(-1)
-    return table.reshape(n_rays * n_int, n_ch).index_select(0, flat).reshape(
-        n_rays, idx.shape[-1], n_ch)
+    flat = _flat(a.dtype)
+    diff = b - a
+    E = (diff / a).add_(flat)
+    L = torch.log1p(diff.abs().div_(torch.minimum(a, b)).add_(flat)).copysign_(diff)
+    if zeros:
+        empty = (a <= 0) | (b <= 0)
+        E = E.masked_fill_(empty, -1.0)
+        L = L.masked_fill_(empty, -float("inf"))
+    return E, L
 
 
-def _locate(cdf: Tensor, u: Tensor) -> Tensor:
-    """Interval index i with cdf_i <= u < cdf_{i+1}; cdf (R, M+1), u (R, n) -> (R, n)."""
-    return torch.searchsorted(cdf, u, right=True).sub_(1).clamp_(0, cdf.shape[-1] - 2)
+def _flat(dtype: torch.dtype) -> float:
+    """The growth sqrt(tiny) that stands for a constant piece (its L equals it too)."""
+    return float(torch.finfo(dtype).tiny) ** 0.5
 
 
-def _sample_exp(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor) -> Tensor:
-    """Fused inverse transform for the exponential kind.
+def _make_flat(E: Tensor, L: Tensor, degenerate: Tensor) -> tuple[Tensor, Tensor]:
+    """Turn every piece of the (R, 1) ``degenerate`` rays constant (uniform fallback)."""
+    flat = _flat(E.dtype)
+    return E.masked_fill(degenerate, flat), L.masked_fill(degenerate, flat)
 
-    A sample at quantile u in an interval (mass fraction ``width`` starting at cdf value
-    ``lo``, ``q = (u - lo) / width``) lies at ``t_lo + D log1p(q expm1(L)) / L``. Written as
-    ``t_lo + D (c + log1p(q K - P)) / L`` with ``K = expm1(L - c) + P``, ``P = -expm1(-c)``,
-    which is the same number for any shift ``c >= 0``; ``c`` is 0 unless
-    ``expm1(L) / width`` would exceed e^80, so nothing overflows. ``u`` enters as
-    ``log1p(u alpha - beta)`` with ``alpha = K / width`` and ``beta = lo alpha + P``: each
-    sample gathers four numbers and takes one log1p. The closed form is exact to rounding for
-    every ``L != 0``; ``|L| < sqrt(tiny)`` (in practice ``a == b``, where 0/0 would appear,
-    and rays that fall back to uniform) uses ``L = sqrt(tiny)``, for which the exponential
-    equals the constant to within 1e-19 relative.
+
+def _fused_exp(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
+               zeros: bool) -> Tensor:
+    """Exponential pieces: mass ``a E / L``, position ``t_lo + D log1p(q E) / L``.
 
     Args:
-        a, b: (R, M) endpoint weights in [0, 1]. d: (R, M) lengths. t_lo: (R, M) starts.
-        u: (R, n) sorted quantiles in [0, 1).
-
-    Returns:
-        (R, n) positions, sorted up to rounding.
-    """
-    L, positive = _log_ratio(a, b)
-    cdf, degenerate = _normalized_cdf(_exp_mass(a, b, L, positive) * d, d)  # (R, M+1)
-    tiny = float(torch.finfo(a.dtype).tiny) ** 0.5
-    L = torch.where(degenerate | ~positive | (L.abs() < tiny), tiny, L)
-    lo, width = cdf[:, :-1], cdf[:, 1:] - cdf[:, :-1]
-    width = torch.where(width > 0, width, 1.0)
-    c = (L - torch.log(width) - _SHIFT).clamp_min(0.0)  # (R, M), almost always 0
-    P = -torch.expm1(-c)
-    alpha = (torch.expm1(L - c) + P) / width
-    gamma = d / L
-    table = torch.stack([alpha, lo * alpha + P, gamma, t_lo + c * gamma], dim=-1)  # (R, M, 4)
-    rows = _gather_rows(table, _locate(cdf, u))  # (R, n, 4)
-    x = torch.log1p((u * rows[..., 0] - rows[..., 1]).clamp_min(-1.0))
-    return torch.addcmul(rows[..., 3], x, rows[..., 2])
-
-
-def _exp_mass(a: Tensor, b: Tensor, L: Tensor, positive: Tensor) -> Tensor:
-    """Mass per unit length of exponential pieces: the logarithmic mean of a and b.
-
-    ``(b - a) / L`` where ``|L| > 1`` (no cancellation there, no overflow for any ratio),
-    ``a expm1(L) / L`` below, with its series ``a (1 + L/2 + L^2/6)`` where ``|L|`` is tiny.
-
-    Args:
-        a, b: (...) endpoint weights. L: (...) ln(b/a) where ``positive``, else anything finite.
-        positive: (...) bool, a > 0 and b > 0.
-
-    Returns:
-        (...) mass per unit length, 0 where not ``positive``.
-    """
-    big = L.abs() > 1.0
-    small = L.abs() < _series_threshold(a.dtype)
-    near = a * _expm1_over(torch.where(big, 0.0, L), small | big)
-    far = (b - a) / torch.where(big, L, 1.0)
-    return torch.where(positive, torch.where(big, far, near), 0.0)
-
-
-#: ln of the largest intermediate the exp kind allows itself (e^80 < float32 max / 1e3).
-_SHIFT = 80.0
-
-
-def _sample_q_kind(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
-                   kind: str) -> Tensor:
-    """Inverse transform for the ``inverse`` and ``linear`` kinds through the fraction q.
-
-    Args:
-        a, b: (R, M) endpoint weights in [0, 1]. d: (R, M) lengths. t_lo: (R, M) starts.
-        u: (R, n) sorted quantiles in [0, 1).
-        kind: ``"inverse"`` or ``"linear"``.
+        a, b: (R, M) endpoint weights in {0} U [tiny, 1]. d: (R, M) lengths.
+        t_lo: (R, M) starts. u: (R, n) sorted quantiles.
+        zeros: whether a or b can be 0.
 
     Returns:
         (R, n) positions, sorted up to rounding.
     """
-    cdf, degenerate = _normalized_cdf(piece_mass(a, b, kind) * d, d)  # (R, M+1)
-    lo, width = cdf[:, :-1], cdf[:, 1:] - cdf[:, :-1]
-    inv_w = 1.0 / torch.where(width > 0, width, 1.0)
-    uniform = degenerate.expand_as(a).to(a.dtype)
-    table = torch.stack([lo, inv_w, a, b, t_lo, d, uniform], dim=-1)  # (R, M, 7)
-    rows = _gather_rows(table, _locate(cdf, u))  # (R, n, 7)
-    q = ((u - rows[..., 0]) * rows[..., 1]).clamp_(0.0, 1.0)
-    s = piece_inverse_cdf(rows[..., 2], rows[..., 3], q, kind)
-    s = torch.where(rows[..., 6] > 0, q, s)  # uniform fallback: uniform inside each piece too
-    return torch.addcmul(rows[..., 4], s, rows[..., 5])
+    E, L = _growth(a, b, zeros)
+    mass = (a * E).div_(L).mul_(d)  # a == 0 or b == 0: E = -1, L = -inf, mass 0
+    lo, hi, degenerate = _cdf(mass, d)
+    if zeros:  # else a ray without mass has only zero-length pieces: any E, L will do
+        E, L = _make_flat(E, L, degenerate)  # uniform fallback: constant pieces
+    idx = _locate(hi, u)
+    # alpha = E / width folds q = (u - lo) / width into one product per sample.
+    fmax = torch.finfo(a.dtype).max
+    alpha = (E * _inverse_width(lo, hi)).clamp_(-fmax, fmax)  # E, 1/width finite: no NaN
+    y = (u - torch.gather(lo, -1, idx)).mul_(torch.gather(alpha, -1, idx))  # q E
+    x = torch.log1p(y.clamp_(min=-1.0 + torch.finfo(a.dtype).eps))
+    return torch.addcmul(torch.gather(t_lo, -1, idx), x, torch.gather(d / L, -1, idx))
+
+
+def _fused_inverse(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
+                   zeros: bool) -> Tensor:
+    """Inverse (hyperbolic) pieces: mass ``b L / E``, position ``t_lo + D expm1(-qL)/expm1(-L)``.
+
+    Args and returns as :func:`_fused_exp`.
+    """
+    E, L = _growth(a, b, zeros)
+    mass = torch.where(torch.isfinite(L), b * L / E, 0.0).mul_(d)  # L = -inf: no mass
+    lo, hi, degenerate = _cdf(mass, d)
+    if zeros:
+        E, L = _make_flat(E, L, degenerate)
+    idx = _locate(hi, u)
+    q = _fraction(u, lo, _inverse_width(lo, hi), idx)
+    scale = d / torch.expm1(-L)  # (R, M); L = -inf pieces (no mass) give 0
+    y = torch.expm1(q.mul_(torch.gather(L, -1, idx)).neg_())
+    return torch.addcmul(torch.gather(t_lo, -1, idx), y, torch.gather(scale, -1, idx))
+
+
+def _fused_linear(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
+                  zeros: bool) -> Tensor:
+    """Linear pieces: mass ``(a + b) / 2``, position from the quadratic's stable root.
+
+    Args and returns as :func:`_fused_exp`.
+    """
+    lo, hi, degenerate = _cdf((0.5 * (a + b)).mul_(d), d)
+    idx = _locate(hi, u)
+    q = _fraction(u, lo, _inverse_width(lo, hi), idx)
+    one = torch.ones((), dtype=a.dtype, device=a.device)
+    ai = torch.gather(torch.where(degenerate, one, a), -1, idx)
+    bi = torch.gather(torch.where(degenerate, one, b), -1, idx)
+    s = piece_inverse_cdf(ai, bi, q, "linear")
+    return torch.addcmul(torch.gather(t_lo, -1, idx), s, torch.gather(d, -1, idx))
+
+
+# ----------------------------------------------------------------------------- one piece
+
+
+def _series_threshold(dtype: torch.dtype) -> float:
+    """|L| below which the plain forms switch to their series (eps^(1/3): truncation < eps)."""
+    return float(torch.finfo(dtype).eps) ** (1.0 / 3.0)
 
 
 def _log_ratio(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
@@ -382,12 +390,18 @@ def _log_ratio(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
     return L, positive
 
 
-def piece_mass(a: Tensor, b: Tensor, kind: str) -> Tensor:
-    """Mass per unit length of one interpolated piece with endpoint weights a and b.
+def _expm1_over(L: Tensor, small: Tensor) -> Tensor:
+    """f(L) = expm1(L) / L, with its series 1 + L/2 + L^2/6 where ``small``."""
+    series = 1.0 + L * (0.5 + L / 6.0)
+    return torch.where(small, series, torch.expm1(L) / torch.where(small, 1.0, L))
 
-    ``exp``: the logarithmic mean ``(b - a) / ln(b / a)`` = ``a expm1(L) / L``;
-    ``inverse``: ``ab ln(b/a) / (b - a)`` = ``b L / expm1(L)``; ``linear``: ``(a + b) / 2``.
-    Series where |L| is tiny; 0 where a or b is 0 for ``exp`` and ``inverse``.
+
+def piece_mass(a: Tensor, b: Tensor, kind: str) -> Tensor:
+    """Mass per unit length of one interpolated piece (the plain, per-piece form).
+
+    ``exp``: the logarithmic mean ``(b - a) / ln(b/a)``: ``a expm1(L) / L`` for ``L <= 1``,
+    ``(b - a) / L`` above (no overflow); ``inverse``: ``b L / expm1(L)``; ``linear``:
+    ``(a + b) / 2``. Series where ``|L|`` is tiny; 0 where a or b is 0 (exp, inverse).
 
     Args:
         a: (...) finite non-negative weight at the start of the piece.
@@ -400,14 +414,22 @@ def piece_mass(a: Tensor, b: Tensor, kind: str) -> Tensor:
     if kind == "linear":
         return 0.5 * a + 0.5 * b
     L, positive = _log_ratio(a, b)
+    small = L.abs() < _series_threshold(a.dtype)
     if kind == "exp":
-        return _exp_mass(a, b, L, positive)
-    f = _expm1_over(L, L.abs() < _series_threshold(a.dtype))  # expm1(L)/L > 0
-    return torch.where(positive, b / f, 0.0)
+        big = L > 1.0
+        near = a * _expm1_over(torch.where(big, 0.0, L), small | big)
+        per = torch.where(big, (b - a) / torch.where(big, L, 1.0), near)
+    else:
+        per = b / _expm1_over(L.clamp_max(80.0), small)
+    return torch.where(positive, per, 0.0)
 
 
 def piece_inverse_cdf(a: Tensor, b: Tensor, q: Tensor, kind: str) -> Tensor:
     """Position s in [0, 1] below which a piece holds the fraction q of its mass.
+
+    The plain, per-piece form: closed forms, the second-order series where
+    ``|L| < eps^(1/3)`` (exp: ``q + q(1-q)L/2 + q(1-q)(1-2q)L^2/6``; inverse:
+    ``q + q(1-q)L/2 + q(1-q)(1-2q)L^2/12``), and overflow-free rewrites where ``|L| > 60``.
 
     Args:
         a: (...) finite non-negative weight at the start of the piece.
@@ -422,36 +444,21 @@ def piece_inverse_cdf(a: Tensor, b: Tensor, q: Tensor, kind: str) -> Tensor:
     if kind == "linear":
         den = a + torch.sqrt((1.0 - q) * a * a + q * b * b)
         s = torch.where(den > 0, q * (a + b) / torch.where(den > 0, den, 1.0), q)
-    elif kind == "exp":
-        zero = torch.zeros_like(a)
-        one = torch.ones_like(a)
-        s = _sample_exp(a.reshape(-1, 1), b.reshape(-1, 1), one.reshape(-1, 1),
-                        zero.reshape(-1, 1), q.reshape(-1, 1)).reshape(q.shape)
-    else:
-        L, positive = _log_ratio(a, b)
-        s = torch.where(positive, _inverse_kind_s(L, q), q)
-    return s.clamp(0.0, 1.0)
-
-
-def _inverse_kind_s(L: Tensor, q: Tensor) -> Tensor:
-    """s(q) of the inverse kind, ``expm1(-qL) / expm1(-L)``, finite for every L.
-
-    For ``L >= 0`` every exponent is <= 0. For ``L < 0`` (``M = -L > 0``) the direct form is
-    used up to ``M = 80`` and ``exp((q-1)M) expm1(-qM) / expm1(-M)`` beyond, where ``e^M``
-    would overflow. ``|L|`` below eps^(1/3) uses the second-order series
-    ``q (1 + (1-q) L/2 + (1-q)(1-2q) L^2/12)``.
-
-    Args:
-        L: (...) ln(b/a), finite. q: (...) fractions in [0, 1].
-
-    Returns:
-        (...) s, in [0, 1] up to rounding.
-    """
-    small = L.abs() < _series_threshold(L.dtype)
+        return s.clamp(0.0, 1.0)
+    L, positive = _log_ratio(a, b)
+    small = L.abs() < _series_threshold(a.dtype)
     Ls = torch.where(small, 1.0, L)
-    direct = torch.expm1(-q * Ls.clamp_min(-_SHIFT)) / torch.expm1(-Ls.clamp_min(-_SHIFT))
-    M = (-Ls).clamp_min(1.0)
-    far = torch.exp((q - 1.0) * M) * torch.expm1(-q * M) / torch.expm1(-M)
-    closed = torch.where(Ls < -_SHIFT, far, direct)
-    series = q + q * (1.0 - q) * L * (0.5 + (1.0 - 2.0 * q) * L / 12.0)
-    return torch.where(small, series, closed)
+    if kind == "exp":
+        direct = torch.log1p(q * torch.expm1(Ls.clamp_max(60.0))) / Ls
+        far = 1.0 + torch.log(q + (1.0 - q) * torch.exp(-Ls.clamp_min(1.0))) / Ls
+        closed = torch.where(Ls > 60.0, far, direct)
+        series = q + q * (1.0 - q) * L * (0.5 + (1.0 - 2.0 * q) * L / 6.0)
+    else:
+        M = -Ls  # s = expm1(q M) / expm1(M)
+        direct = torch.expm1(q * M.clamp_max(60.0)) / torch.expm1(M.clamp_max(60.0))
+        Mf = M.clamp_min(1.0)
+        far = torch.exp((q - 1.0) * Mf) * torch.expm1(-q * Mf) / torch.expm1(-Mf)
+        closed = torch.where(M > 60.0, far, direct)
+        series = q + q * (1.0 - q) * L * (0.5 + (1.0 - 2.0 * q) * L / 12.0)
+    s = torch.where(small, series, closed)
+    return torch.where(positive, s, q).clamp(0.0, 1.0)
