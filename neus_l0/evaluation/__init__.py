@@ -1,0 +1,26 @@
+"""Mesh evaluation: Chamfer distance with the DTU protocol or a synthetic scene's ground truth.
+
+Modules (all pure functions on NumPy arrays, world units):
+
+- `pointcloud`: DTU-style triangle sampling and radius thinning of a mesh.
+- `chamfer`: chunked nearest-neighbour distances and truncated means.
+- `dtu`: DTU evaluation files (STL points, ObsMask, Plane) and the DTU protocol.
+- `synthetic`: a synthetic scene's ground truth (points, depth maps, cameras) and visibility.
+- `cull`: IDR / NeuS-style culling of mesh parts outside the dilated object masks.
+- `error_maps`: error-coloured PLY files.
+- `io`: reading meshes / point clouds and writing PLY files, with one-line errors.
+- `score`: `score_mesh`, the whole `neus-l0 eval` pipeline as one function.
+
+`docs/EVALUATION.md` documents the protocol and the JSON that `neus-l0 eval` writes.
+"""
+
+from neus_l0.evaluation.chamfer import ChamferResult, nearest_distances, truncated_mean
+from neus_l0.evaluation.pointcloud import sample_mesh, thin_points
+
+__all__ = [
+    "ChamferResult",
+    "nearest_distances",
+    "sample_mesh",
+    "thin_points",
+    "truncated_mean",
+]
