@@ -1,0 +1,320 @@
+"""Synthetic NeuS-format scenes with exact ground truth (`make_scene`).
+
+Pipeline: shape (analytic SDF or mesh) placed in a DTU-like world frame (millimetres, the
+object about 250 across, centred away from the origin) -> ground-truth mesh (marching cubes
+of the SDF with every vertex Newton-projected onto the analytic surface; for mesh input the
+mesh itself) -> bounding sphere with a 10 % margin (``scale_mat``, as NeuS's preprocessing
+does) -> camera cap (elevation 20-70 degrees, distance 3.9-4.4 sphere radii, like DTU's 4.1)
+-> renders (textured, shaded, anti-aliased, textured backdrop), masks, depth maps ->
+ground-truth points (dense surface samples, exact, kept where some camera sees them).
+
+Folder layout: see "A synthetic scene folder" in ``docs/ARCHITECTURE.md``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from neus_l0.atomic import atomic_write, atomic_write_json
+from neus_l0.data.cameras import (
+    camera_z_depth,
+    cap_centres,
+    intrinsics_to_fit,
+    look_at,
+    projection_matrix,
+    sphere_scale_mat,
+)
+from neus_l0.data.render import SdfSurface, Style, render_views
+from neus_l0.data.shapes import (
+    BUILTIN_SHAPES,
+    BuiltinShape,
+    Translated,
+    builtin_shape,
+    project_to_surface,
+)
+from neus_l0.errors import NeusL0Error
+
+#: Where built-in objects sit in the world frame (millimetres; deliberately off-origin).
+WORLD_OFFSET = (12.0, -8.0, 30.0)
+#: Bounding-sphere margin of ``scale_mat`` (radius = margin x the object's radius).
+SPHERE_MARGIN = 1.1
+#: Camera distance range in sphere radii (DTU: about 4.1).
+DISTANCE_RANGE = (3.9, 4.4)
+#: Default marching-cubes voxel (world units) of the ground-truth mesh, per built-in.
+GT_VOXEL = {"demo": 1.5, "pits-and-thin": 0.8}
+#: Rays per render batch (bounded memory; several views share one batch).
+RAYS_PER_BATCH = 2_500_000
+
+
+def _marching_cubes_sdf(sdf, lo: np.ndarray, hi: np.ndarray, voxel: float):
+    """Marching cubes of `sdf` on a grid over [lo, hi] with spacing `voxel`.
+
+    Returns:
+        vertices (V, 3) float64 world, faces (F, 3) int64 (outward normals).
+    """
+    from skimage.measure import marching_cubes
+
+    lo = lo - 2 * voxel
+    hi = hi + 2 * voxel
+    n = np.ceil((hi - lo) / voxel).astype(int) + 1
+    axes = [torch.linspace(float(lo[i]), float(lo[i] + voxel * (n[i] - 1)), int(n[i]))
+            for i in range(3)]
+    vals = np.empty(tuple(n), np.float32)
+    gy, gz = torch.meshgrid(axes[1], axes[2], indexing="ij")
+    yz = torch.stack([gy.flatten(), gz.flatten()], -1)  # (ny*nz, 2)
+    with torch.no_grad():
+        for i, x in enumerate(axes[0]):  # one x-slab per call: bounded memory
+            pts = torch.cat([x.expand(yz.shape[0], 1), yz], -1)
+            vals[i] = sdf(pts).reshape(int(n[1]), int(n[2])).numpy()
+    verts, faces, _, _ = marching_cubes(vals, level=0.0, spacing=(voxel,) * 3)
+    return verts.astype(np.float64) + lo, faces[:, ::-1].astype(np.int64)
+
+
+def _exact_surface_points(sdf, pts: np.ndarray, iters: int) -> np.ndarray:
+    """Newton-project (N, 3) world points onto the analytic surface, in float64."""
+    out = []
+    with torch.no_grad():
+        for chunk in torch.from_numpy(pts).split(1 << 18):
+            out.append(project_to_surface(sdf, chunk.double(), iters=iters).numpy())
+    return np.concatenate(out) if out else pts
+
+
+def _load_mesh(path: Path):
+    """Load a mesh file (OBJ/PLY/GLB/...) as one trimesh.Trimesh, y-up turned to z-up."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # noqa: BLE001 - any loader failure is the user's file
+        raise NeusL0Error(f"{path}: cannot read mesh ({exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise NeusL0Error(f"{path}: no triangles found")
+    # scanned models (the Stanford bunny, glTF) are y-up; this package's worlds are z-up
+    rot = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+    mesh.apply_transform(rot)
+    return mesh
+
+
+def _visible(points: np.ndarray, world_mats: np.ndarray, depths: np.ndarray,
+             K: np.ndarray) -> np.ndarray:
+    """(N,) bool: seen by at least one view (in the image, not behind its depth map).
+
+    The tolerance is 2 pixel footprints (depth / focal) + 0.1 % of the depth, since the
+    depth map is sampled at pixel centres only.
+    """
+    H, W = depths.shape[1:]
+    seen = np.zeros(len(points), bool)
+    f = K[0, 0]
+    for P, D in zip(world_mats, depths, strict=True):
+        xy, z = camera_z_depth(P, points)
+        px = np.rint(xy).astype(np.int64, copy=False) if len(xy) else xy
+        inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)
+        idx = np.nonzero(inside & ~seen)[0]
+        d = D[px[idx, 1], px[idx, 0]]
+        seen[idx] = z[idx] <= d + 2.0 * z[idx] / f + 1e-3 * z[idx]
+    return seen
+
+
+def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray | None = None) -> None:
+    """Write a binary little-endian PLY with float64 vertices (and int32 triangles), atomically.
+
+    Float64 keeps the ground truth exact (float32 would round 100 mm coordinates by ~1e-5).
+    """
+    v = np.ascontiguousarray(vertices, dtype="<f8")
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(v)}",
+              "property double x", "property double y", "property double z"]
+    body = v.tobytes()
+    if faces is not None:
+        f = np.asarray(faces, dtype="<i4")
+        header += [f"element face {len(f)}", "property list uchar int vertex_indices"]
+        rec = np.empty(len(f), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
+        rec["n"], rec["idx"] = 3, f
+        body += rec.tobytes()
+    data = ("\n".join(header + ["end_header"]) + "\n").encode("ascii") + body
+    atomic_write(path, lambda p: p.write_bytes(data))
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    img = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
+    atomic_write(path, lambda p: cv2.imwrite(str(p), img[..., ::-1]) or _fail(p))
+
+
+def _fail(p):
+    raise OSError(f"{p}: cv2.imwrite failed")
+
+
+def _resolve(scene: str):
+    """(name, BuiltinShape | None, trimesh | None) for a built-in name or a mesh path."""
+    if scene in BUILTIN_SHAPES:
+        shape = builtin_shape(scene)
+        return scene, shape, None
+    path = Path(scene)
+    if not path.is_file():
+        raise NeusL0Error(f"{scene}: neither a built-in scene ({', '.join(BUILTIN_SHAPES)}) "
+                          f"nor a mesh file")
+    return path.stem, None, _load_mesh(path)
+
+
+@contextlib.contextmanager
+def _torch_threads(n: int | None):
+    """Run the block with `n` torch CPU threads (None: leave as is), then restore."""
+    before = torch.get_num_threads()
+    if n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
+               height: int = 300, seed: int = 0, *, spp: int = 2,
+               gt_voxel: float | None = None, point_spacing: float = 0.5,
+               azimuth_span: float = 360.0, progress: bool = True,
+               threads: int | None = 1) -> Path:
+    """Render a synthetic NeuS-format scene with exact ground truth into `out`.
+
+    Args:
+        scene: a built-in name (``demo``, ``pits-and-thin``) or a mesh file path.
+        out: output folder (created; files in it are replaced atomically).
+        views, width, height: number of cameras and image size.
+        seed: seed of the camera jitter and the texture.
+        spp: anti-aliasing sub-samples per pixel axis (spp^2 per pixel).
+        gt_voxel: marching-cubes voxel of the ground-truth mesh (world units; default per
+            built-in). Ignored for mesh input.
+        point_spacing: about how far apart the ground-truth points are (world units).
+        azimuth_span: azimuth range of the camera cap in degrees (360: all around).
+        progress: show a tqdm bar while rendering.
+        threads: torch CPU threads while it runs (restored afterwards; None keeps the
+            current setting). One is the default: the work is many small tensor ops, and
+            on a small shared CPU two threads competing with other processes were measured
+            up to 5x slower than one.
+
+    Returns:
+        The output folder.
+    """
+    with _torch_threads(threads):
+        return _make_scene(scene, out, views, width, height, seed, spp, gt_voxel,
+                           point_spacing, azimuth_span, progress)
+
+
+def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spacing,
+                azimuth_span, progress) -> Path:
+    import trimesh
+    from tqdm import tqdm
+
+    if views < 1 or width < 8 or height < 8 or spp < 1:
+        raise NeusL0Error(f"synth: need views >= 1, width/height >= 8, spp >= 1 "
+                          f"(got {views}, {width}x{height}, spp {spp})")
+    t_start = time.time()
+    out = Path(out)
+    name, shape, mesh = _resolve(scene)
+    offset = np.array(WORLD_OFFSET)
+
+    # --- ground-truth surface in world units --------------------------------------------
+    if shape is not None:
+        sdf = Translated(shape.sdf, tuple(offset))
+        lo, hi = np.array(shape.bounds[0]) + offset, np.array(shape.bounds[1]) + offset
+        voxel = gt_voxel or GT_VOXEL.get(name, 1.0)
+        verts, faces = _marching_cubes_sdf(sdf, lo, hi, voxel)
+        verts = _exact_surface_points(sdf, verts, iters=12)
+        gt_mesh = trimesh.Trimesh(verts, faces, process=False)
+        features = [dict(f, center=[float(c) for c in np.add(f["center"], offset)])
+                    for f in shape.features]
+        surface = SdfSurface(sdf, tuple(lo - 1.0), tuple(hi + 1.0))
+        made = f"built-in analytic SDF '{name}': {shape.description}"
+    else:
+        from neus_l0.data.meshes import MeshSurface
+
+        ext = mesh.bounds[1] - mesh.bounds[0]
+        k = 250.0 / float(ext.max())  # about 250 mm across, like the built-ins
+        mesh.apply_transform(trimesh.transformations.scale_matrix(k))
+        mesh.apply_translation(offset - mesh.bounds.mean(0))
+        gt_mesh = mesh
+        features = []
+        surface = MeshSurface(np.asarray(mesh.vertices), np.asarray(mesh.faces))
+        sdf = None
+        made = f"mesh file {scene} scaled by {k:.6g} (y-up turned z-up), centred at {offset}"
+    verts = np.asarray(gt_mesh.vertices)
+    centre = 0.5 * (verts.min(0) + verts.max(0))
+    radius = SPHERE_MARGIN * float(np.linalg.norm(verts - centre, axis=1).max())
+    scale_mat = sphere_scale_mat(centre, radius)
+
+    # --- cameras ------------------------------------------------------------------------
+    dist = (DISTANCE_RANGE[0] * radius, DISTANCE_RANGE[1] * radius)
+    eyes = cap_centres(views, centre, dist, azimuth_span_deg=azimuth_span, seed=seed)
+    K = intrinsics_to_fit(width, height, radius, dist[0], fill=1.0)
+    w2c = np.stack([look_at(e, centre) for e in eyes])
+    c2w = np.linalg.inv(w2c)
+    world_mats = np.stack([projection_matrix(K, m) for m in w2c])
+
+    # --- render -------------------------------------------------------------------------
+    style = Style(scale=radius, center=tuple(centre), backdrop_radius=8.0 * dist[1],
+                  seed=seed)
+    per_batch = max(1, RAYS_PER_BATCH // ((spp * spp + 1) * width * height))
+    rgb = np.empty((views, height, width, 3), np.float32)
+    cover = np.empty((views, height, width), np.float32)
+    depth = np.empty((views, height, width), np.float32)
+    Ks = np.repeat(K[None], views, axis=0)
+    with torch.no_grad(), tqdm(total=views, desc=f"render {name}", unit="view",
+                               disable=not progress) as bar:
+        for v0 in range(0, views, per_batch):
+            sl = slice(v0, min(views, v0 + per_batch))
+            r = render_views(surface, style, Ks[sl], c2w[sl],
+                             height, width, spp)
+            rgb[sl], cover[sl], depth[sl] = r["rgb"], r["coverage"], r["depth"]
+            bar.update(sl.stop - sl.start)
+
+    # --- ground-truth points --------------------------------------------------------------
+    n_pts = int(np.ceil(gt_mesh.area / point_spacing ** 2))
+    pts, _ = trimesh.sample.sample_surface(gt_mesh, n_pts, seed=seed)
+    pts = np.asarray(pts, np.float64)
+    if sdf is not None:
+        pts = _exact_surface_points(sdf, pts, iters=12)
+    pts = pts[_visible(pts, world_mats, depth, K)]
+
+    # --- write --------------------------------------------------------------------------
+    for sub in ("image", "mask"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    for i in range(views):
+        _write_png(out / "image" / f"{i:03d}.png", rgb[i])
+        m = (cover[i] >= 0.5).astype(np.float32)
+        _write_png(out / "mask" / f"{i:03d}.png", np.repeat(m[..., None], 3, -1))
+    cams = {}
+    for i in range(views):
+        cams[f"world_mat_{i}"] = world_mats[i]
+        cams[f"scale_mat_{i}"] = scale_mat
+    atomic_write(out / "cameras_sphere.npz", lambda p: np.savez(open(p, "wb"), **cams))
+    atomic_write(out / "gt_depth.npz", lambda p: np.savez_compressed(
+        open(p, "wb"), **{f"depth_{i}": depth[i] for i in range(views)}))
+    write_ply(out / "gt_mesh.ply", np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces))
+    write_ply(out / "gt_points.ply", pts)
+    atomic_write_json(out / "features.json", {"features": features})
+    atomic_write_json(out / "scene.json", {
+        "name": name, "seed": seed, "views": views, "width": width, "height": height,
+        "spp": spp, "source": str(scene), "made_by": made,
+        "world_units": "millimetres (DTU-like)",
+        "sphere": {"center": centre.tolist(), "radius": radius, "margin": SPHERE_MARGIN},
+        "cameras": {"elevation_deg": [20.0, 70.0], "azimuth_span_deg": azimuth_span,
+                    "distance": list(dist), "focal": float(K[0, 0]),
+                    "intrinsics": K.tolist(), "c2w_world": c2w.tolist()},
+        "gt_points": {"count": int(len(pts)), "spacing": point_spacing},
+        "gt_mesh": {"vertices": int(len(gt_mesh.vertices)), "faces": int(len(gt_mesh.faces)),
+                    "voxel": None if sdf is None else voxel},
+        "seconds": round(time.time() - t_start, 2),
+    })
+    return out
+
+
+def builtin_names() -> list[str]:
+    """Names of the built-in scenes."""
+    return list(BUILTIN_SHAPES)
+
+
+__all__ = ["make_scene", "builtin_names", "BuiltinShape"]
