@@ -10,9 +10,11 @@ import torch
 from sampling_reference import (
     l0_cdf,
     mass,
-    maxblur as maxblur_ref,
     sample_l0_ref,
     sample_pdf_ref,
+)
+from sampling_reference import (
+    maxblur as maxblur_ref,
 )
 
 from neus_l0.sampling import (

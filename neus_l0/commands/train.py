@@ -1,17 +1,63 @@
-"""`neus-l0 train`: train NeuS on a scene (not implemented yet: the reconstruction issue)."""
+"""`neus-l0 train`: train NeuS on a NeuS-format scene."""
 
 from __future__ import annotations
 
 import argparse
 
-from neus_l0.commands._pending import not_yet
+from neus_l0.commands._overrides import accept_overrides
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
-    p = sub.add_parser(name, help="train NeuS on a scene [pending: the reconstruction issue]")
-    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    p = sub.add_parser(name, help="train NeuS on a scene",
+                       description="Train NeuS on a NeuS-format scene folder. The "
+                                   "up-sampling draw is the config's `sampler`: wmask/womask "
+                                   "use NeuS's own (hvs) as the reference; add sampler=l0 for "
+                                   "the L0-Sampler.")
+    p.add_argument("data", metavar="DATA", help="scene folder (image/, mask/, cameras_sphere.npz)")
+    p.add_argument("--conf", default="wmask",
+                   help="config: a YAML path, confs/NAME.yaml or a built-in NAME "
+                        "(wmask, womask, demo); default wmask")
+    p.add_argument("--out", required=True, metavar="RUN", help="run folder to write")
+    p.add_argument("--device", default=None, choices=["cpu", "cuda"],
+                   help="default: cuda when available")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from the newest checkpoint in RUN (its config.yaml is the "
+                        "base config; overrides still apply)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    accept_overrides(p)
     return p
 
 
+def pick_device(name: str | None) -> str:
+    """`name`, or cuda when available; cuda without a GPU is a user error."""
+    import torch
+
+    from neus_l0.errors import NeusL0Error
+
+    if name is None:
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise NeusL0Error("--device cuda: no CUDA device is available")
+    return name
+
+
 def run(args: argparse.Namespace) -> int:
-    return not_yet("train", "the reconstruction issue")
+    from pathlib import Path
+
+    from neus_l0.config import load_config
+    from neus_l0.data.scene import load_scene
+    from neus_l0.train import train
+
+    run_dir = Path(args.out)
+    conf = run_dir / "config.yaml" if args.resume and (run_dir / "config.yaml").is_file() \
+        else args.conf
+    cfg = load_config(conf, args.overrides)
+    device = pick_device(args.device)
+    scene = load_scene(args.data, downscale=cfg.data.downscale, device=device)
+    result = train(scene, cfg, run_dir, device=device, resume=args.resume,
+                   progress=not args.quiet)
+    state = "stopped at the time budget" if result.stopped_early else "done"
+    print(f"{state}: {result.iteration} iterations in {result.seconds:.0f} s; "
+          f"checkpoint {result.checkpoint}")
+    print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/)")
+    return 0

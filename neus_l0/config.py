@@ -1,0 +1,436 @@
+"""Dataclass configs, read from `neus_l0/confs/*.yaml` with dotted `key=value` overrides.
+
+One dataclass per component, each field documented where it is declared. A config file is a
+nested YAML mapping whose keys mirror the dataclass fields; every key is optional (missing
+keys keep the defaults below, which are NeuS's `wmask` settings). Overrides on the command
+line use dotted keys, e.g. ``sampler=hvs train.iters=2000 model.sdf.hidden=64``; their values
+are parsed as YAML. Unknown keys and values of the wrong type raise `ConfigError` naming the
+key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from neus_l0.errors import ConfigError
+
+#: Folder holding the built-in configs (`wmask`, `womask`, `demo`, ...).
+CONFS_DIR = Path(__file__).resolve().parent / "confs"
+
+#: Sampler names accepted by `Config.sampler` (see `neus_l0.rendering.draw_fine_samples`).
+SAMPLERS = ("hvs", "l0", "l0-inverse", "l0-linear")
+
+
+@dataclass
+class EncodingConfig:
+    """An input encoding (see `neus_l0.fields.encodings.build_encoding`)."""
+
+    kind: str = "frequency"
+    """Encoding kind: `frequency` (NeRF positional encoding) or `identity`."""
+    n_freqs: int = 6
+    """Number of octaves 2^0 .. 2^(n_freqs-1) of the frequency encoding (0: input only)."""
+    include_input: bool = True
+    """Whether the raw input is concatenated in front of the sines and cosines."""
+
+
+@dataclass
+class SDFConfig:
+    """NeuS's SDF network (IDR's MLP with a skip connection and geometric initialisation)."""
+
+    hidden: int = 256
+    """Width of the hidden layers."""
+    layers: int = 8
+    """Number of hidden layers."""
+    skip: list[int] = field(default_factory=lambda: [4])
+    """Indices of the linear layers whose input is re-concatenated with the encoded input."""
+    encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=6))
+    """Encoding of the 3-D point."""
+    feature_dim: int = 256
+    """Length of the feature vector handed to the colour network."""
+    geometric_init: bool = True
+    """Initialise the SDF to a sphere of radius `bias` (SAL / IDR geometric init)."""
+    bias: float = 0.5
+    """Radius of the initial sphere."""
+    scale: float = 1.0
+    """Input scale: the network sees `x * scale` and returns `sdf / scale`."""
+    softplus_beta: float = 100.0
+    """Sharpness of the softplus activation."""
+    weight_norm: bool = True
+    """Weight normalisation on every linear layer."""
+
+
+@dataclass
+class ColorConfig:
+    """NeuS's colour (rendering) network."""
+
+    hidden: int = 256
+    """Width of the hidden layers."""
+    layers: int = 4
+    """Number of hidden layers."""
+    mode: str = "idr"
+    """Inputs: `idr` (point, view dir, normal, feature), `no_view_dir` or `no_normal`."""
+    view_encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=4))
+    """Encoding of the view direction."""
+    weight_norm: bool = True
+    """Weight normalisation on every linear layer."""
+
+
+@dataclass
+class VarianceConfig:
+    """NeuS's single learned variance: s = exp(10 * variance)."""
+
+    init: float = 0.3
+    """Initial value of `variance` (s starts at exp(3) ~ 20)."""
+
+
+@dataclass
+class BackgroundConfig:
+    """NeRF++ background model for the space outside the unit sphere (no-mask setting)."""
+
+    hidden: int = 256
+    """Width of the hidden layers."""
+    layers: int = 8
+    """Number of hidden layers."""
+    skip: list[int] = field(default_factory=lambda: [4])
+    """Layers after which the encoded input is re-concatenated."""
+    encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=10))
+    """Encoding of the inverse-sphere point (x/r, 1/r), 4-D."""
+    view_encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=4))
+    """Encoding of the view direction."""
+
+
+@dataclass
+class ModelConfig:
+    """All networks."""
+
+    sdf: SDFConfig = field(default_factory=SDFConfig)
+    """The SDF network."""
+    color: ColorConfig = field(default_factory=ColorConfig)
+    """The colour network."""
+    variance: VarianceConfig = field(default_factory=VarianceConfig)
+    """The single variance."""
+    background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    """The background model, built only when `render.n_outside > 0`."""
+
+
+@dataclass
+class RenderConfig:
+    """Sampling along rays and compositing (NeuS's `neus_renderer` block)."""
+
+    n_samples: int = 64
+    """Coarse samples, uniform in [near, far] of the unit sphere."""
+    n_importance: int = 64
+    """Fine samples in total, drawn in `up_sample_steps` equal rounds."""
+    up_sample_steps: int = 4
+    """Rounds of up-sampling; round i uses the fixed inv_s = 64 * 2^i."""
+    n_outside: int = 0
+    """Samples of the background model outside the unit sphere (0: no background model)."""
+    perturb: bool = True
+    """Jitter the coarse samples (one random shift per ray) during training."""
+    point_weights: str = "midpoint"
+    """How NeuS's section weights become point weights for the L0 samplers: `midpoint`
+    (weights at section midpoints) or `endpoint` (average of the two adjacent sections at
+    each sample). Ignored by `hvs`, which takes section weights directly."""
+    weights_as_density: bool = True
+    """Divide each section weight by its length (times the mean length) before the L0
+    interpolation, so that point values are densities even when sections are uneven."""
+    l0_pad: float = 0.001
+    """Padding of the maxblur that the L0 samplers add to their (density) point weights. The
+    authors' code uses 0.001, the paper 0.01; with NeuS's section weights 0.01 spreads about
+    a third of the fine samples uniformly along the ray (measured on a sphere), 0.001 keeps
+    them near the surface."""
+    white_background: bool = False
+    """Composite over white instead of black (no background model)."""
+    chunk: int = 1024
+    """Rays per chunk when rendering whole images (validation)."""
+
+
+@dataclass
+class TrainConfig:
+    """Optimisation, losses, logging and checkpoints."""
+
+    iters: int = 300000
+    """Total iterations (NeuS's `end_iter`); the cosine schedule ends here."""
+    batch_size: int = 512
+    """Rays per iteration."""
+    lr: float = 5e-4
+    """Peak learning rate of Adam."""
+    lr_alpha: float = 0.05
+    """Final learning rate as a fraction of `lr` (cosine decay)."""
+    warm_up: int = 5000
+    """Iterations of linear learning-rate warm-up."""
+    anneal_end: int = 0
+    """Iteration where the cos-annealing ratio reaches 1 (0: 1 from the start)."""
+    igr_weight: float = 0.1
+    """Weight of the Eikonal loss."""
+    mask_weight: float = 0.1
+    """Weight of the mask BCE loss (0: masks unused)."""
+    seed: int = 0
+    """Seed of the network initialisation and of the ray / sample generator."""
+    log_every: int = 100
+    """Iterations between metric log lines (and the only host syncs of the loop)."""
+    val_every: int = 2500
+    """Iterations between validation renders (0: never)."""
+    val_downscale: int = 4
+    """Downscale factor of the validation renders."""
+    save_every: int = 10000
+    """Iterations between checkpoints (a final one is always written)."""
+    keep_checkpoints: int = 3
+    """How many of the newest checkpoints to keep."""
+    max_seconds: float = 0.0
+    """Wall-clock budget: stop and checkpoint after this many seconds (0: no budget)."""
+
+
+@dataclass
+class DataConfig:
+    """How the scene is loaded."""
+
+    downscale: int = 1
+    """Integer image downscale at load time."""
+
+
+@dataclass
+class Config:
+    """A complete run configuration."""
+
+    sampler: str = "l0"
+    """Up-sampling draw: `hvs` (NeuS's piecewise constant), `l0` (exponential, the default),
+    `l0-inverse` or `l0-linear`."""
+    data: DataConfig = field(default_factory=DataConfig)
+    """Scene loading."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Networks."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """Sampling and compositing."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Optimisation."""
+
+
+# ------------------------------------------------------------------------------------------
+# Building dataclasses from plain data, with type checks.
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(value: Any, tp: Any, key: str) -> Any:
+    """Return `value` converted to the annotated type `tp`, or raise `ConfigError`."""
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{key}: expected a mapping, got {value!r}")
+        return from_dict(tp, value, prefix=key + ".")
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _coerce(value, arg, key)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[0] if errors else f"{key}: bad value {value!r}")
+    if origin is list:
+        (item_tp,) = typing.get_args(tp)
+        if isinstance(value, tuple):
+            value = list(value)
+        if not isinstance(value, list):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        return [_coerce(v, item_tp, f"{key}[{i}]") for i, v in enumerate(value)]
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        if isinstance(value, float) and value.is_integer():
+            return int(value)
+        raise ConfigError(f"{key}: expected an integer, got {value!r}")
+    if tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        if isinstance(value, str):  # PyYAML reads "5e-4" (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                pass
+        raise ConfigError(f"{key}: expected a number, got {value!r}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"{key}: expected a string, got {value!r}")
+    raise ConfigError(f"{key}: unsupported type {_type_name(tp)}")  # pragma: no cover
+
+
+def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
+    """Build dataclass `cls` from a nested mapping; unknown keys raise `ConfigError`."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = [k for k in data if k not in names]
+    if unknown:
+        raise ConfigError(f"unknown config key '{prefix}{unknown[0]}' "
+                          f"(known under '{prefix or '.'}': {', '.join(sorted(names))})")
+    base = cls()
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        if f.name in data:
+            kwargs[f.name] = _coerce(data[f.name], hints[f.name], prefix + f.name)
+        else:
+            kwargs[f.name] = getattr(base, f.name)
+    obj = cls(**kwargs)
+    _validate(obj, prefix)
+    return obj
+
+
+def to_dict(cfg: Any) -> dict:
+    """Plain nested dict of a config dataclass (for YAML and checkpoints)."""
+    return dataclasses.asdict(cfg)
+
+
+def _validate(obj: Any, prefix: str) -> None:
+    """Range checks of values whose types are right but whose meaning is not."""
+    def bad(name: str, why: str) -> ConfigError:
+        return ConfigError(f"{prefix}{name}: {why}")
+
+    if isinstance(obj, Config) and obj.sampler not in SAMPLERS:
+        raise bad("sampler", f"unknown sampler {obj.sampler!r} (choose from {', '.join(SAMPLERS)})")
+    if isinstance(obj, EncodingConfig):
+        if obj.kind not in ("frequency", "identity"):
+            raise bad("kind", f"unknown encoding {obj.kind!r} (frequency, identity)")
+        if obj.n_freqs < 0:
+            raise bad("n_freqs", "must be >= 0")
+    if isinstance(obj, ColorConfig) and obj.mode not in ("idr", "no_view_dir", "no_normal"):
+        raise bad("mode", f"unknown mode {obj.mode!r} (idr, no_view_dir, no_normal)")
+    if isinstance(obj, RenderConfig):
+        if obj.point_weights not in ("midpoint", "endpoint"):
+            raise bad("point_weights", f"unknown choice {obj.point_weights!r} (midpoint, endpoint)")
+        if obj.n_samples < 2:
+            raise bad("n_samples", "must be >= 2")
+        if obj.up_sample_steps < 0 or obj.n_importance < 0:
+            raise bad("n_importance", "must be >= 0")
+        if obj.up_sample_steps and obj.n_importance % obj.up_sample_steps:
+            raise bad("n_importance", f"{obj.n_importance} is not a multiple of "
+                      f"up_sample_steps={obj.up_sample_steps}")
+    if isinstance(obj, TrainConfig):
+        for name in ("iters", "batch_size", "log_every"):
+            if getattr(obj, name) < 1:
+                raise bad(name, "must be >= 1")
+        if obj.lr <= 0:
+            raise bad("lr", "must be > 0")
+    if isinstance(obj, (SDFConfig, ColorConfig, BackgroundConfig)):
+        if obj.hidden < 1 or obj.layers < 1:
+            raise bad("hidden", "hidden and layers must be >= 1")
+
+
+# ------------------------------------------------------------------------------------------
+# Files and overrides.
+
+
+def resolve_conf_path(conf: str | Path) -> Path:
+    """Find a config: an existing path, `confs/NAME.yaml` in the package, or a bare `NAME`."""
+    path = Path(conf)
+    if path.is_file():
+        return path
+    name = path.name if path.suffix in (".yaml", ".yml") else path.name + ".yaml"
+    candidate = CONFS_DIR / name
+    if path.parent in (Path("."), Path("confs")) and candidate.is_file():
+        return candidate
+    known = ", ".join(sorted(p.stem for p in CONFS_DIR.glob("*.yaml")))
+    raise ConfigError(f"{conf}: no such config file (built-in configs: {known})")
+
+
+def parse_overrides(items: list[str]) -> dict:
+    """Turn ``["a.b=1", "c=x"]`` into the nested dict ``{"a": {"b": 1}, "c": "x"}``.
+
+    Values are parsed as YAML (so `1e-4`, `true`, `[4]` work); a malformed item raises
+    `ConfigError`.
+    """
+    out: dict = {}
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"override '{item}' is not of the form key=value")
+        key, text = item.split("=", 1)
+        key = key.strip()
+        if not key or any(not part for part in key.split(".")):
+            raise ConfigError(f"override '{item}' has an empty key")
+        try:
+            value = yaml.safe_load(text) if text.strip() else ""
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"override '{item}': value is not valid YAML ({exc})") from None
+        node = out
+        parts = key.split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"override '{item}' conflicts with another override")
+        node[parts[-1]] = value
+    return out
+
+
+def _merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def read_yaml(path: Path) -> dict:
+    """Read a YAML mapping (empty file: {}), raising `ConfigError` on malformed files."""
+    try:
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read config ({exc})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config file must be a mapping of keys to values")
+    return data
+
+
+def load_config(conf: str | Path | None = None, overrides: list[str] | None = None) -> Config:
+    """Read a config file (see `resolve_conf_path`) and apply dotted overrides.
+
+    Args:
+        conf: a path, `confs/NAME.yaml` or a bare `NAME`; None for the defaults (wmask).
+        overrides: ``key=value`` strings applied after the file.
+
+    Raises:
+        ConfigError: naming the file or the key that is wrong.
+    """
+    data: dict = {}
+    source = "defaults"
+    if conf is not None:
+        path = resolve_conf_path(conf)
+        data = read_yaml(path)
+        source = str(path)
+    if overrides:
+        data = _merge(data, parse_overrides(overrides))
+    try:
+        return from_dict(Config, data)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+
+
+def config_from_dict(data: dict) -> Config:
+    """Rebuild a `Config` from `to_dict` output (e.g. a checkpoint's)."""
+    return from_dict(Config, data)
+
+
+def dump_config(cfg: Config) -> str:
+    """The config as YAML text (every key, so the file documents the run)."""
+    return yaml.safe_dump(to_dict(cfg), sort_keys=False)

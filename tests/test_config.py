@@ -1,0 +1,113 @@
+"""Configs: built-in files, dotted overrides, clear errors for bad keys and types."""
+
+from pathlib import Path
+
+import pytest
+
+from neus_l0.config import (
+    SAMPLERS,
+    Config,
+    config_from_dict,
+    dump_config,
+    load_config,
+    parse_overrides,
+    resolve_conf_path,
+    to_dict,
+)
+from neus_l0.errors import ConfigError
+
+
+def test_wmask_and_womask_match_neus():
+    w = load_config("wmask")
+    assert (w.train.lr, w.train.warm_up, w.train.iters, w.train.lr_alpha) == (5e-4, 5000, 300000,
+                                                                              0.05)
+    assert (w.train.batch_size, w.render.n_samples, w.render.n_importance,
+            w.render.up_sample_steps) == (512, 64, 64, 4)
+    assert (w.train.anneal_end, w.train.igr_weight, w.train.mask_weight) == (0, 0.1, 0.1)
+    assert w.render.n_outside == 0 and w.render.perturb and w.sampler == "hvs"
+    assert (w.model.sdf.hidden, w.model.sdf.layers, w.model.sdf.skip) == (256, 8, [4])
+    assert w.model.sdf.encoding.n_freqs == 6 and w.model.color.view_encoding.n_freqs == 4
+    assert (w.model.color.hidden, w.model.color.layers) == (256, 4)
+    assert w.model.variance.init == 0.3
+    wo = load_config("womask")
+    assert wo.render.n_outside == 32 and wo.train.anneal_end == 50000
+    assert wo.train.mask_weight == 0.0
+    assert wo.model.background.encoding.n_freqs == 10
+    assert (wo.model.background.layers, wo.model.background.hidden) == (8, 256)
+
+
+@pytest.mark.parametrize("spec", ["wmask", "confs/wmask.yaml", "wmask.yaml"])
+def test_conf_spellings(spec):
+    assert resolve_conf_path(spec).name == "wmask.yaml"
+
+
+def test_conf_path(tmp_path):
+    p = tmp_path / "mine.yaml"
+    p.write_text("sampler: l0-linear\ntrain: {iters: 7}\n")
+    cfg = load_config(str(p))
+    assert cfg.sampler == "l0-linear" and cfg.train.iters == 7
+    assert cfg.train.lr == Config().train.lr  # missing keys keep defaults
+
+
+def test_overrides():
+    cfg = load_config("wmask", ["sampler=hvs", "train.iters=2000", "model.sdf.hidden=64",
+                                "train.lr=1e-4", "model.sdf.skip=[2]", "render.perturb=false"])
+    assert cfg.sampler == "hvs" and cfg.train.iters == 2000 and cfg.model.sdf.hidden == 64
+    assert cfg.train.lr == pytest.approx(1e-4) and cfg.model.sdf.skip == [2]
+    assert cfg.render.perturb is False
+    assert parse_overrides(["a.b=1", "a.c=x"]) == {"a": {"b": 1, "c": "x"}}
+
+
+@pytest.mark.parametrize("override, words", [
+    (["model.sdf.hiden=3"], ["model.sdf.hiden", "unknown"]),
+    (["nope=1"], ["nope", "unknown"]),
+    (["train.iters=abc"], ["train.iters", "integer"]),
+    (["train.lr=true"], ["train.lr", "number"]),
+    (["render.perturb=3"], ["render.perturb", "true or false"]),
+    (["sampler=foo"], ["sampler", "foo"]),
+    (["model.sdf=3"], ["model.sdf", "mapping"]),
+    (["train.iters"], ["train.iters", "key=value"]),
+    (["render.n_importance=30"], ["n_importance", "multiple"]),
+    (["render.point_weights=mid"], ["point_weights"]),
+])
+def test_bad_overrides_name_the_key(override, words):
+    with pytest.raises(ConfigError) as exc:
+        load_config("wmask", override)
+    for w in words:
+        assert w in str(exc.value)
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(ConfigError, match="no such config"):
+        load_config("does-not-exist")
+    p = tmp_path / "bad.yaml"
+    p.write_text("train: {iters: [1, 2}\n")
+    with pytest.raises(ConfigError, match="bad.yaml"):
+        load_config(str(p))
+    p.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(str(p))
+    p.write_text("train: {batch: 3}\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml.*train.batch"):
+        load_config(str(p))
+
+
+def test_round_trip_and_yaml(tmp_path):
+    cfg = load_config("demo", ["train.iters=5"])
+    assert config_from_dict(to_dict(cfg)) == cfg
+    p = tmp_path / "c.yaml"
+    p.write_text(dump_config(cfg))
+    assert load_config(str(p)) == cfg
+
+
+def test_every_builtin_config_loads():
+    confs = sorted(Path(resolve_conf_path("wmask")).parent.glob("*.yaml"))
+    assert {c.stem for c in confs} >= {"wmask", "womask", "demo"}
+    for c in confs:
+        assert load_config(c.stem).sampler in SAMPLERS
+
+
+def test_samplers_agree_with_renderer():
+    from neus_l0.rendering import SAMPLERS as R
+
+    assert tuple(SAMPLERS) == tuple(R)

@@ -1,0 +1,220 @@
+"""Rendering: sphere bounds, the up-sampling weights, every sampler on an analytic sphere."""
+
+import pytest
+import torch
+from torch import nn
+
+from neus_l0.config import ColorConfig, RenderConfig, VarianceConfig
+from neus_l0.fields import ColorNetwork, NeuSModel, SingleVariance, build_model
+from neus_l0.rendering import (
+    SAMPLERS,
+    coarse_z_vals,
+    draw_fine_samples,
+    merge_sorted,
+    near_far_from_sphere,
+    outside_z_vals,
+    render_image,
+    render_rays,
+    section_to_point_weights,
+    transmittance,
+    upsample_section_weights,
+)
+
+RADIUS = 0.5
+
+
+class AnalyticSphere(nn.Module):
+    """SDF network stand-in: |x - c| - r with a zero feature vector."""
+
+    feature_dim = 8
+
+    def __init__(self, radius=RADIUS, centre=(0.0, 0.0, 0.0)):
+        super().__init__()
+        self.radius = radius
+        self.register_buffer("centre", torch.tensor(centre))
+        self.dummy = nn.Parameter(torch.zeros(()))
+
+    def forward(self, x):
+        d = (x - self.centre).norm(dim=-1, keepdim=True) - self.radius + 0.0 * self.dummy
+        return torch.cat([d, torch.zeros(x.shape[0], self.feature_dim, device=x.device)], -1)
+
+    def sdf(self, x):
+        return self.forward(x)[:, :1]
+
+
+def sphere_model(s_init=0.6):
+    return NeuSModel(AnalyticSphere(), ColorNetwork(ColorConfig(hidden=16, layers=2), 8),
+                     SingleVariance(VarianceConfig(init=s_init)))
+
+
+def rays_at_sphere(n=256, seed=0):
+    """Rays from distance 3 towards points near the centre, and the analytic first hit.
+
+    `hit` marks rays that meet the sphere well away from grazing (whose opacity is low by
+    design); `t_hit` is their first intersection.
+    """
+    g = torch.Generator().manual_seed(seed)
+    o = torch.randn(n, 3, generator=g)
+    o = 3.0 * o / o.norm(dim=-1, keepdim=True)
+    d = torch.randn(n, 3, generator=g) * 0.15 - o
+    d = d / d.norm(dim=-1, keepdim=True)
+    b = (o * d).sum(-1)
+    disc = b * b - ((o * o).sum(-1) - RADIUS**2)
+    hit = disc > 0.01
+    t_hit = -b - disc.clamp_min(0).sqrt()
+    return o, d, hit, t_hit
+
+
+def disc_miss(o, d):
+    b = (o * d).sum(-1)
+    return b * b - ((o * o).sum(-1) - RADIUS**2) < -0.01
+
+
+def test_near_far_is_the_unit_sphere_chord():
+    o, d, _, _ = rays_at_sphere(64)
+    near, far = near_far_from_sphere(o, d)
+    assert torch.allclose(far - near, torch.full_like(near, 2.0))
+    mid = 0.5 * (near + far)
+    closest = o + mid * d
+    assert ((closest * d).sum(-1)).abs().max() < 1e-5  # mid is the closest point to 0
+
+
+def test_coarse_and_outside_samples():
+    near, far = torch.zeros(4, 1), torch.full((4, 1), 2.0)
+    z = coarse_z_vals(near, far, 16, perturb=False)
+    assert torch.allclose(z[0], torch.linspace(0, 2, 16))
+    g = torch.Generator().manual_seed(0)
+    zp = coarse_z_vals(near, far, 16, perturb=True, generator=g)
+    assert ((zp - z).abs() <= 1.0 / 16 + 1e-6).all()
+    zo = outside_z_vals(far, 8, 16, perturb=True, generator=g)
+    assert zo.shape == (4, 8) and (zo > far).all()
+    assert (zo[:, 1:] >= zo[:, :-1]).all()
+
+
+def test_upsample_weights_peak_at_the_surface():
+    z = torch.linspace(0.0, 2.0, 65)[None]  # a ray through the centre from distance 1
+    sdf = (z - 1.0).abs() - RADIUS  # surface at z = 0.5 and 1.5
+    radius = (z - 1.0).abs()
+    w = upsample_section_weights(z, sdf, radius, 64.0)
+    assert w.shape == (1, 64)
+    mids = 0.5 * (z[:, 1:] + z[:, :-1])
+    assert (mids[0, w[0].argmax()] - 0.5).abs() < 2.0 / 64
+    assert w.sum() <= 1.0 + 1e-5
+
+
+def test_transmittance_and_merge():
+    alpha = torch.tensor([[0.5, 0.5, 1.0, 0.3]])
+    assert torch.allclose(transmittance(alpha), torch.tensor([[1.0, 0.5, 0.25, 0.0]]), atol=1e-6)
+    z, v = merge_sorted(torch.tensor([[0.0, 2.0]]), torch.tensor([[1.0, 3.0]]),
+                        torch.tensor([[10.0, 12.0]]), torch.tensor([[11.0, 13.0]]))
+    assert torch.equal(z, torch.tensor([[0.0, 1.0, 2.0, 3.0]]))
+    assert torch.equal(v, torch.tensor([[10.0, 11.0, 12.0, 13.0]]))
+
+
+def test_section_to_point_weights():
+    z = torch.tensor([[0.0, 1.0, 1.5, 3.5]])
+    w = torch.tensor([[0.2, 0.3, 0.4]])
+    t, p = section_to_point_weights(z, w, "midpoint", as_density=False)
+    assert torch.allclose(t, torch.tensor([[0.5, 1.25, 2.5]])) and torch.equal(p, w)
+    t, p = section_to_point_weights(z, w, "endpoint", as_density=False)
+    assert torch.equal(t, z)
+    assert torch.allclose(p, torch.tensor([[0.2, 0.25, 0.35, 0.4]]))
+    # as densities: weight / length, scaled by the mean length (uniform sections unchanged)
+    _, p = section_to_point_weights(z, w, "midpoint", as_density=True)
+    mean = 3.5 / 3
+    assert torch.allclose(p, torch.tensor([[0.2 / 1.0, 0.3 / 0.5, 0.4 / 2.0]]) * mean)
+    zu = torch.linspace(0, 1, 5)[None]
+    _, pu = section_to_point_weights(zu, w[:, :3].repeat(1, 2)[:, :4], "midpoint")
+    assert torch.allclose(pu, w[:, :3].repeat(1, 2)[:, :4])
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_draw_fine_samples_inside_range_and_sorted(sampler):
+    z = torch.sort(torch.rand(32, 20), dim=-1).values
+    w = torch.rand(32, 19)
+    s = draw_fine_samples(z, w, 16, sampler)
+    assert s.shape == (32, 16) and torch.isfinite(s).all()
+    assert (s[:, 1:] >= s[:, :-1]).all()
+    assert (s >= z[:, :1] - 1e-6).all() and (s <= z[:, -1:] + 1e-6).all()
+
+
+def test_unknown_sampler():
+    with pytest.raises(ValueError, match="unknown sampler"):
+        draw_fine_samples(torch.rand(2, 4).sort().values, torch.rand(2, 3), 4, "nope")
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_fine_samples_cluster_at_an_analytic_sphere(sampler):
+    torch.manual_seed(0)
+    model = sphere_model()
+    cfg = RenderConfig()
+    o, d, hit, t_hit = rays_at_sphere(256)
+    out = render_rays(model, o, d, cfg, sampler, create_graph=False)
+    for k, v in out.items():
+        assert torch.isfinite(v).all(), k
+    assert out["z_fine"].shape == (256, 64) and out["z_vals"].shape == (256, 128)
+    err = (out["z_fine"][hit] - t_hit[hit, None]).abs()
+    # most fine samples lie within a few 1/inv_s of the first surface hit
+    assert (err < 0.02).float().mean() > 0.5, sampler
+    assert err.median() < 0.02
+    # the rendered depth and opacity see the sphere
+    assert (out["depth"][hit, 0] - t_hit[hit]).abs().mean() < 5e-3
+    assert (out["weight_sum"][hit] > 0.95).all()
+    assert (out["weight_sum"][disc_miss(o, d)] < 0.05).all()
+    # normals of hit rays point back to the camera and are about unit length
+    n = out["normal"][hit]
+    cos = (n * d[hit]).sum(-1)
+    assert (cos < 0).all() and cos.mean() < -0.8
+
+
+def test_l0_midpoint_default_at_least_as_tight_as_endpoint():
+    """The documented default: midpoints cluster the fine samples no worse than endpoints."""
+    model = sphere_model()
+    o, d, hit, t_hit = rays_at_sphere(256)
+    frac = {}
+    for placement in ("midpoint", "endpoint"):
+        cfg = RenderConfig(point_weights=placement)
+        out = render_rays(model, o, d, cfg, "l0")
+        frac[placement] = ((out["z_fine"][hit] - t_hit[hit, None]).abs() < 0.005).float().mean()
+    assert frac["midpoint"] >= frac["endpoint"] - 0.01
+
+
+def test_render_rays_gradients_and_background():
+    torch.manual_seed(0)
+    from neus_l0.config import ModelConfig, SDFConfig
+
+    mcfg = ModelConfig(sdf=SDFConfig(hidden=64, layers=2, skip=[], feature_dim=16))
+    mcfg.color.hidden = mcfg.background.hidden = 32
+    mcfg.background.layers, mcfg.background.skip = 2, []
+    model = build_model(mcfg, background=True)
+    cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2, n_outside=8)
+    o, d, _, _ = rays_at_sphere(32)
+    g = torch.Generator().manual_seed(0)
+    out = render_rays(model, o, d, cfg, "l0", cos_anneal_ratio=0.5, perturb=True,
+                      generator=g, create_graph=True)
+    assert out["weights"].shape == (32, 32 + 8)
+    assert out["gradients"].shape == (32, 32, 3)
+    for k, v in out.items():
+        assert torch.isfinite(v).all(), k
+    loss = out["color"].sum() + out["gradient_error"]
+    loss.backward()
+    for name, p in model.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), name
+    assert model.background.rgb.weight.grad.abs().sum() > 0
+
+
+def test_render_is_deterministic_given_the_generator():
+    model = sphere_model()
+    o, d, _, _ = rays_at_sphere(16)
+    outs = [render_rays(model, o, d, RenderConfig(), "l0", perturb=True,
+                        generator=torch.Generator().manual_seed(3))["z_vals"] for _ in range(2)]
+    assert torch.equal(outs[0], outs[1])
+
+
+def test_render_image_shapes():
+    model = sphere_model()
+    o, d, _, _ = rays_at_sphere(12)
+    out = render_image(model, o.reshape(3, 4, 3), d.reshape(3, 4, 3),
+                       RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2), chunk=5)
+    assert out["color"].shape == (3, 4, 3) and out["depth"].shape == (3, 4)
+    assert not out["color"].requires_grad

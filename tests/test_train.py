@@ -1,0 +1,311 @@
+"""Training: losses fall with every sampler, resume is exact, checkpoints are safe, CLI."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from neus_l0.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
+from neus_l0.config import load_config
+from neus_l0.data.rays import pixel_grid, pixel_rays
+from neus_l0.data.scene import Scene
+from neus_l0.errors import ConfigError, NeusL0Error
+from neus_l0.rendering import SAMPLERS
+from neus_l0.schedule import cos_anneal_ratio, lr_factor
+from neus_l0.train import load_trained_model, train
+
+SMALL = ["model.sdf.hidden=48", "model.sdf.layers=2", "model.sdf.skip=[]",
+         "model.sdf.feature_dim=16", "model.sdf.encoding.n_freqs=2",
+         "model.color.hidden=32", "model.color.layers=1", "render.n_samples=16",
+         "render.n_importance=16", "render.up_sample_steps=2", "train.batch_size=64",
+         "train.warm_up=0", "train.lr=2e-3", "train.log_every=5", "train.val_every=0",
+         "train.save_every=0"]
+
+
+def _look_at(eye):
+    f = -eye / np.linalg.norm(eye)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, np.cross(f, r), f, eye
+    return c2w
+
+
+def sphere_scene(root, n_views=6, H=16, W=20, radius=0.5):
+    """A Scene built in memory: a sphere coloured by its normal, black background, masks."""
+    K = torch.tensor([[W * 1.2, 0, (W - 1) / 2], [0, W * 1.2, (H - 1) / 2], [0, 0, 1.0]])
+    imgs, masks, c2ws = [], [], []
+    for i in range(n_views):
+        a, el = 2 * np.pi * i / n_views, 0.3 + 0.3 * (i % 2)
+        eye = 2.5 * np.array([np.cos(a) * np.cos(el), np.sin(a) * np.cos(el), np.sin(el)])
+        c2w = torch.tensor(_look_at(eye), dtype=torch.float32)
+        o, d = pixel_rays(K, c2w, pixel_grid(H, W).reshape(-1, 2))
+        b = (o * d).sum(-1)
+        disc = b * b - ((o * o).sum(-1) - radius**2)
+        hit = disc > 0
+        n = (o + (-b - disc.clamp_min(0).sqrt())[:, None] * d) / radius
+        imgs.append(((0.5 + 0.4 * n) * hit[:, None]).reshape(H, W, 3))
+        masks.append(hit.float().reshape(H, W))
+        c2ws.append(c2w)
+    scale = np.diag([2.0, 2.0, 2.0, 1.0])
+    scale[:3, 3] = [1.0, -2.0, 0.5]
+    return Scene(root=Path(root), images=torch.stack(imgs), masks=torch.stack(masks),
+                 has_masks=True, intrinsics=K.expand(n_views, 3, 3).clone(),
+                 c2w=torch.stack(c2ws), scale_mat=scale,
+                 image_names=[f"{i:03d}.png" for i in range(n_views)])
+
+
+@pytest.fixture
+def scene(tmp_path):
+    return sphere_scene(tmp_path / "scene")
+
+
+def read_metrics(run):
+    return [json.loads(line) for line in (Path(run) / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_schedules():
+    assert lr_factor(0, 10, 100, 0.05) == 0.0
+    assert lr_factor(5, 10, 100, 0.05) == 0.5
+    assert lr_factor(10, 10, 100, 0.05) == pytest.approx(1.0)
+    assert lr_factor(100, 10, 100, 0.05) == pytest.approx(0.05)
+    assert lr_factor(55, 10, 100, 0.05) == pytest.approx(0.525)
+    assert cos_anneal_ratio(10, 0) == 1.0 and cos_anneal_ratio(25, 50) == 0.5
+    assert cos_anneal_ratio(80, 50) == 1.0
+
+
+@pytest.mark.parametrize("sampler", SAMPLERS)
+def test_a_few_steps_lower_the_loss(scene, tmp_path, sampler):
+    cfg = load_config("demo", SMALL + [f"sampler={sampler}", "train.iters=30"])
+    res = train(scene, cfg, tmp_path / "run", progress=False)
+    m = read_metrics(tmp_path / "run")
+    assert len(m) == 6 and res.iteration == 30
+    for row in m:
+        assert all(np.isfinite(row[k]) for k in ("loss", "color_loss", "eikonal_loss", "psnr"))
+    assert m[-1]["loss"] < 0.8 * m[0]["loss"], [r["loss"] for r in m]
+    model, cfg2, info = load_trained_model(tmp_path / "run")
+    assert cfg2.sampler == sampler and info["iteration"] == 30
+    for p in model.parameters():
+        assert torch.isfinite(p).all()
+
+
+def test_run_folder_layout(scene, tmp_path):
+    cfg = load_config("demo", SMALL + ["train.iters=4", "train.val_every=2",
+                                       "train.val_downscale=2", "train.save_every=2",
+                                       "train.keep_checkpoints=1", "train.log_every=2"])
+    run = tmp_path / "run"
+    train(scene, cfg, run, progress=False)
+    assert load_config(str(run / "config.yaml")) == cfg
+    assert [p.name for p in list_checkpoints(run)] == ["ckpt_0000004.pt"]
+    pngs = sorted((run / "validation").glob("*.png"))
+    assert len(pngs) == 2
+    import cv2
+
+    img = cv2.imread(str(pngs[0]))
+    assert img.shape == (8, 30, 3)  # gt | colour | normals of a 2x downscaled 16x20 view
+    state = load_checkpoint(latest_checkpoint(run))
+    assert {"model", "optimizer", "rng", "config", "iteration", "scale_mat"} <= set(state)
+    assert np.allclose(state["scale_mat"], scene.scale_mat)
+    with pytest.raises(NeusL0Error, match="--resume"):
+        train(scene, cfg, run, progress=False)
+
+
+def test_resume_equals_uninterrupted(scene, tmp_path):
+    full = load_config("demo", SMALL + ["train.iters=12"])
+    train(scene, full, tmp_path / "a", progress=False)
+    part = train(scene, full, tmp_path / "b", progress=False, stop_at=5)
+    assert part.stopped_early and part.iteration == 5
+    train(scene, full, tmp_path / "b", resume=True, progress=False)
+    a = load_checkpoint(latest_checkpoint(tmp_path / "a"))
+    b = load_checkpoint(latest_checkpoint(tmp_path / "b"))
+    assert a["iteration"] == b["iteration"] == 12
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    assert torch.equal(a["rng"]["generator"], b["rng"]["generator"])
+    ma, mb = read_metrics(tmp_path / "a"), read_metrics(tmp_path / "b")
+    assert [r["iter"] for r in ma] == [r["iter"] for r in mb]
+    assert ma[-1]["loss"] == mb[-1]["loss"]
+    for k in a["optimizer"]["state"]:
+        for name, v in a["optimizer"]["state"][k].items():
+            assert torch.equal(v, b["optimizer"]["state"][k][name]), (k, name)
+
+
+def test_interrupted_checkpoint_write_keeps_the_previous_one(scene, tmp_path, monkeypatch):
+    cfg = load_config("demo", SMALL + ["train.iters=2", "train.save_every=2"])
+    run = tmp_path / "run"
+    train(scene, cfg, run, progress=False)
+    before = latest_checkpoint(run).read_bytes()
+
+    real_save = torch.save
+
+    def failing_save(obj, f, *a, **k):
+        real_save(obj, f, *a, **k)  # the temporary file is complete ...
+        raise OSError("disk full")  # ... but the write fails before the rename
+
+    monkeypatch.setattr(torch, "save", failing_save)
+    cfg4 = load_config("demo", SMALL + ["train.iters=4", "train.save_every=2"])
+    with pytest.raises(OSError, match="disk full"):
+        train(scene, cfg4, run, resume=True, progress=False)
+    monkeypatch.undo()
+    assert [p.name for p in list_checkpoints(run)] == ["ckpt_0000002.pt"]
+    assert latest_checkpoint(run).read_bytes() == before
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["ckpt_0000002.pt"]
+    assert load_checkpoint(latest_checkpoint(run))["iteration"] == 2
+
+
+def test_nan_checkpoint_is_refused(scene, tmp_path):
+    cfg = load_config("demo", SMALL + ["train.iters=2"])
+    run = tmp_path / "run"
+    train(scene, cfg, run, progress=False)
+    path = latest_checkpoint(run)
+    state = torch.load(path, weights_only=False)
+    key = next(k for k in state["model"] if state["model"][k].is_floating_point())
+    state["model"][key].view(-1)[0] = float("nan")
+    torch.save(state, path)
+    with pytest.raises(NeusL0Error, match="NaN"):
+        train(scene, cfg, run, resume=True, progress=False)
+    with pytest.raises(NeusL0Error, match="NaN"):
+        load_trained_model(run)
+
+
+def test_resume_without_checkpoint_and_missing_masks(scene, tmp_path):
+    cfg = load_config("demo", SMALL + ["train.iters=2"])
+    with pytest.raises(NeusL0Error, match="nothing to resume"):
+        train(scene, cfg, tmp_path / "empty", resume=True, progress=False)
+    import dataclasses
+
+    no_masks = dataclasses.replace(scene, has_masks=False)
+    with pytest.raises(ConfigError, match="mask"):
+        train(no_masks, cfg, tmp_path / "r", progress=False)
+
+
+def test_max_seconds_stops_and_checkpoints(scene, tmp_path):
+    cfg = load_config("demo", SMALL + ["train.iters=100000", "train.max_seconds=0.5"])
+    res = train(scene, cfg, tmp_path / "run", progress=False)
+    assert res.stopped_early and 0 < res.iteration < 100000
+    assert latest_checkpoint(tmp_path / "run").name == f"ckpt_{res.iteration:07d}.pt"
+
+
+def test_background_model_trains(tmp_path):
+    import dataclasses
+
+    scene = dataclasses.replace(sphere_scene(tmp_path / "s"), has_masks=False)
+    cfg = load_config("womask", SMALL + ["model.background.hidden=32",
+                                         "model.background.layers=2",
+                                         "model.background.skip=[]",
+                                         "render.n_outside=8", "train.iters=4",
+                                         "train.log_every=2", "train.warm_up=0"])
+    train(scene, cfg, tmp_path / "run", progress=False)
+    assert all(np.isfinite(r["loss"]) for r in read_metrics(tmp_path / "run"))
+
+
+# ------------------------------------------------------------------------------------------
+# Command line: train -> mesh on a scene folder, and the demo.
+
+
+def write_scene_folder(scene, root):
+    """Write an in-memory Scene as a NeuS-format folder (image/, mask/, cameras_sphere.npz)."""
+    import cv2
+
+    root = Path(root)
+    (root / "image").mkdir(parents=True)
+    (root / "mask").mkdir()
+    cams = {}
+    for i in range(scene.n_views):
+        rgb = (scene.images[i].numpy() * 255 + 0.5).astype(np.uint8)
+        cv2.imwrite(str(root / "image" / f"{i:03d}.png"), rgb[..., ::-1])
+        m = (scene.masks[i].numpy() * 255).astype(np.uint8)
+        cv2.imwrite(str(root / "mask" / f"{i:03d}.png"), np.repeat(m[..., None], 3, -1))
+        w2c = np.linalg.inv(scene.c2w[i].numpy().astype(np.float64))
+        P = np.eye(4)
+        P[:3, :4] = scene.intrinsics[i].numpy().astype(np.float64) @ w2c[:3, :4]
+        cams[f"world_mat_{i}"] = P @ np.linalg.inv(scene.scale_mat)
+        cams[f"scale_mat_{i}"] = scene.scale_mat
+    np.savez(root / "cameras_sphere.npz", **cams)
+    return root
+
+
+def test_cli_train_then_mesh(scene, tmp_path, capsys):
+    import trimesh
+
+    from neus_l0.cli import main
+
+    data = write_scene_folder(scene, tmp_path / "data")
+    run = tmp_path / "run"
+    args = ["train", str(data), "--conf", "demo", "--out", str(run), "--quiet",
+            *SMALL, "train.iters=3"]
+    assert main(args) == 0
+    assert (run / "metrics.jsonl").is_file() and latest_checkpoint(run) is not None
+    # resume with a longer schedule, overrides placed before the options
+    assert main(["train", str(data), "train.iters=4", "--out", str(run), "--resume",
+                 "--quiet"]) == 0
+    assert load_checkpoint(latest_checkpoint(run))["iteration"] == 4
+    out = tmp_path / "m.ply"
+    assert main(["mesh", str(run), "--resolution", "32", "--out", str(out), "--colors"]) == 0
+    mesh = trimesh.load(out, force="mesh")
+    # the (nearly initial) SDF is a sphere of radius ~0.5 around the scene centre, in world
+    # units: scale 2, centre (1, -2, 0.5)
+    r = np.linalg.norm(mesh.vertices - scene.scale_mat[:3, 3], axis=1)
+    assert 0.5 < r.mean() < 1.5
+    assert "vertices" in capsys.readouterr().out
+
+
+def test_cli_errors_are_one_line(scene, tmp_path, capsys):
+    from neus_l0.cli import main
+
+    data = write_scene_folder(scene, tmp_path / "data")
+    assert main(["train", str(data), "--out", str(tmp_path / "r"), "model.sdf.hiden=3"]) == 2
+    err = capsys.readouterr().err
+    assert "model.sdf.hiden" in err and len(err.strip().splitlines()) == 1
+    assert main(["train", str(data), "--conf", "nope", "--out", str(tmp_path / "r")]) == 2
+    assert main(["mesh", str(tmp_path / "no-run")]) == 2
+    assert "train first" in capsys.readouterr().err
+
+
+def _tiny_demo(monkeypatch, tmp_path, iters):
+    import neus_l0.commands.demo as demo
+    from neus_l0.cli import main
+
+    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
+    out = tmp_path / "demo"
+    rc = main(["demo", "--out", str(out), "--quiet", "--resolution", "40",
+               *SMALL[:-3], f"train.iters={iters}", "train.val_every=0"])
+    assert rc == 0
+    for p in ("scene/cameras_sphere.npz", "run/config.yaml", "mesh.ply", "metrics.json",
+              "comparison.png"):
+        assert (out / p).exists(), p
+    return json.loads((out / "metrics.json").read_text())
+
+
+def test_demo_quick(monkeypatch, tmp_path):
+    m = _tiny_demo(monkeypatch, tmp_path, 3)
+    assert m["iterations"] == 3 and m["mesh"]["faces"] > 0
+
+
+@pytest.mark.slow
+def test_demo_end_to_end_small(monkeypatch, tmp_path):
+    m = _tiny_demo(monkeypatch, tmp_path, 300)
+    assert m["chamfer"] is None or np.isfinite(m["chamfer"]["overall"])
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_training_on_cuda_matches_resume(scene, tmp_path):
+    cfg = load_config("demo", SMALL + ["train.iters=6"])
+    train(scene, cfg, tmp_path / "a", device="cuda", progress=False)
+    train(scene, cfg, tmp_path / "b", device="cuda", progress=False, stop_at=3)
+    train(scene, cfg, tmp_path / "b", device="cuda", resume=True, progress=False)
+    a = load_checkpoint(latest_checkpoint(tmp_path / "a"))
+    b = load_checkpoint(latest_checkpoint(tmp_path / "b"))
+    for k in a["model"]:
+        assert torch.allclose(a["model"][k], b["model"][k], atol=1e-6), k
+
+
+def test_resume_with_other_network_sizes_is_refused(scene, tmp_path):
+    cfg = load_config("demo", SMALL + ["train.iters=2"])
+    train(scene, cfg, tmp_path / "run", progress=False)
+    wider = load_config("demo", SMALL + ["train.iters=4", "model.sdf.hidden=40"])
+    with pytest.raises(NeusL0Error, match="does not fit"):
+        train(scene, wider, tmp_path / "run", resume=True, progress=False)
