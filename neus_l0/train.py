@@ -20,6 +20,7 @@ import dataclasses
 import json
 import math
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,9 @@ from neus_l0.losses import neus_loss
 from neus_l0.rendering import render_image, render_rays
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
 
+#: A training hook: ``hook(iteration, model, scene, cfg) -> {name: number}``.
+Hook = Callable[[int, NeuSModel, Scene, Config], dict]
+
 METRIC_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "s")
 
 
@@ -54,7 +58,7 @@ class TrainResult:
         iteration: iterations done in total (including before a resume).
         checkpoint: the last checkpoint written.
         metrics: the last logged metrics (empty if none were logged).
-        seconds: wall-clock time of this call.
+        seconds: wall-clock time of this call, less the time spent in hooks.
         stopped_early: whether `train.max_seconds` ended the run before `train.iters`.
     """
 
@@ -195,7 +199,7 @@ def _check_scene(scene: Scene, cfg: Config) -> None:
 
 def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.device = "cpu",
           resume: bool = False, progress: bool = True,
-          stop_at: int | None = None) -> TrainResult:
+          stop_at: int | None = None, hooks: Sequence[Hook] = ()) -> TrainResult:
     """Train NeuS on `scene` and write the run folder.
 
     Args:
@@ -210,6 +214,10 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
         progress: show a tqdm bar.
         stop_at: stop (and checkpoint) at this iteration as if interrupted, keeping the
             schedule of `train.iters` (for tests and staged runs).
+        hooks: called as ``hook(iteration, model, scene, cfg) -> dict`` (model in eval mode,
+            no gradient) each time metrics are logged; their numbers join that line of
+            ``metrics.jsonl``. Their time is not counted in ``elapsed`` nor against
+            ``train.max_seconds``, so budgets stay comparable with and without them.
 
     Returns:
         a `TrainResult`.
@@ -298,6 +306,16 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
                 raise NeusL0Error(f"{run_dir}: training diverged at iteration {iteration} "
                                   f"(loss {last_metrics['loss']}); resume from the last "
                                   "checkpoint with a lower train.lr")
+            if hooks:
+                hook_t0 = time.monotonic()
+                model.eval()
+                with torch.no_grad():
+                    for hook in hooks:
+                        last_metrics.update(hook(iteration, model, scene, cfg))
+                model.train()
+                hook_seconds = time.monotonic() - hook_t0
+                start_time += hook_seconds  # hooks do not count as training time
+                now += hook_seconds
             with open(metrics_path, "a", encoding="utf-8") as f:
                 f.write(json.dumps(last_metrics) + "\n")
             bar.set_postfix(loss=f"{values[0]:.4f}", psnr=f"{values[4]:.2f}",

@@ -188,6 +188,27 @@ def test_max_seconds_stops_and_checkpoints(scene, tmp_path):
     assert latest_checkpoint(tmp_path / "run").name == f"ckpt_{res.iteration:07d}.pt"
 
 
+def test_hooks_join_the_metrics_and_do_not_count_as_training_time(scene, tmp_path):
+    import time as _time
+
+    calls = []
+
+    def slow_hook(iteration, model, scene_, cfg_):
+        calls.append(iteration)
+        assert not model.sdf.training and not torch.is_grad_enabled()
+        _time.sleep(0.4)
+        return {"probe": float(iteration) * 2}
+
+    cfg = load_config("demo", SMALL + ["train.iters=100000", "train.max_seconds=0.6",
+                                       "train.log_every=2"])
+    res = train(scene, cfg, tmp_path / "run", progress=False, hooks=[slow_hook])
+    rows = read_metrics(tmp_path / "run")
+    assert calls == [r["iter"] for r in rows] and len(calls) >= 2
+    assert all(r["probe"] == 2.0 * r["iter"] for r in rows)
+    # Without discounting, the 0.4 s hooks alone would end a 0.6 s budget after two logs.
+    assert res.seconds < 0.6 + 0.4 and res.iteration > 4
+
+
 def test_background_model_trains(tmp_path):
     import dataclasses
 
