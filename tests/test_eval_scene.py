@@ -1,7 +1,8 @@
 """Synthetic-scene evaluation (`--scene`), mask culling (`--cull`) and their CLI.
 
 The scene folder is built here from an analytic sphere: cameras from world_mat matrices
-constructed by look-at, gt_depth and masks by exact ray-sphere intersection.
+constructed by look-at, gt_depth and masks by exact ray-sphere intersection, gt_mesh.ply a
+fine icosphere (its faces lie within 0.0008 of the sphere).
 """
 
 import json
@@ -94,6 +95,7 @@ def make_scene(root, flip_view=1):
         inside = (np.rint(x) >= 0) & (np.rint(x) < W) & (np.rint(y) >= 0) & (np.rint(y) < H)
         seen |= inside & (((c - pts) * pts).sum(1) > 0)
     trimesh.PointCloud(pts[seen]).export(root / "gt_points.ply")
+    sphere_mesh(RADIUS, subdivisions=6).export(root / "gt_mesh.ply")
     return root
 
 
@@ -129,14 +131,41 @@ def test_observed_follows_depth_maps(scene):
 def score(scene, mesh, seed=0, **kw):
     gt = load_synthetic_gt(scene)
     pts = thin_points(sample_mesh(mesh.vertices, mesh.faces, 0.2), 0.2, seed=seed)
-    return evaluate_synthetic(pts, gt, **kw), pts
+    return evaluate_synthetic(pts, gt, pred_mesh=(mesh.vertices, mesh.faces), **kw), pts
 
 
 def test_offset_sphere_both_ways(scene):
     d = 1.0
     (res, _), _ = score(scene, sphere_mesh(RADIUS + d))
-    assert res.accuracy == pytest.approx(d, abs=0.02)
-    assert res.completeness == pytest.approx(d, abs=0.02)
+    assert res.distance == "point-to-mesh"
+    assert res.accuracy == pytest.approx(abs(d), abs=0.01)
+    assert res.completeness == pytest.approx(abs(d), abs=0.01)
+
+
+def test_gt_mesh_scores_zero_against_its_own_scene(scene):
+    """Point-to-mesh: no floor from the GT point spacing (point-to-point gave ~0.05 here)."""
+    gt_mesh = trimesh.load(scene / "gt_mesh.ply", process=False)
+    (res, masks), _ = score(scene, gt_mesh)
+    assert res.accuracy < 1e-9  # the samples lie on gt_mesh's own triangles
+    assert res.completeness < 0.001  # the exact sphere's points to its icosphere
+    assert masks["pred_kept"].mean() > 0.99
+
+
+def test_legacy_scene_without_gt_mesh_falls_back_to_points(scene, tmp_path):
+    import shutil
+
+    legacy = tmp_path / "legacy"
+    shutil.copytree(scene, legacy)
+    (legacy / "gt_mesh.ply").unlink()
+    gt = load_synthetic_gt(legacy)
+    assert gt.surface is None
+    mesh = sphere_mesh(RADIUS + 1.0, subdivisions=4)
+    pts = thin_points(sample_mesh(mesh.vertices, mesh.faces, 0.2), 0.2)
+    res, _ = evaluate_synthetic(pts, gt)
+    assert res.distance == "point-to-point"
+    assert res.accuracy == pytest.approx(1.0, abs=0.1)
+    res, _ = evaluate_synthetic(pts, gt, pred_mesh=(mesh.vertices, mesh.faces))
+    assert res.distance == "accuracy: point-to-point, completeness: point-to-mesh"
 
 
 def test_hidden_floater_ignored_visible_floater_counted(scene):
@@ -212,10 +241,42 @@ def test_cli_scene_with_cull_and_error_maps(scene, tmp_path, capsys):
     assert report["completeness"] == pytest.approx(1.0, abs=0.03)
     assert report["counts"]["gt_used"] == report["counts"]["gt_total"]
     assert report["settings"]["depth_tol"] == 2.0
+    assert report["settings"]["distance"] == "point-to-mesh"
     assert report["error_maps"]["vmax"] == 2.0
     acc = trimesh.load(tmp_path / "maps" / "accuracy.ply", process=False)
     assert len(acc.faces) == report["settings"]["cull"]["faces_after"]
     assert json.loads((tmp_path / "pred.ply.eval.json").read_text()) == report
+
+
+def test_cli_gt_mesh_against_its_scene_with_error_maps(scene, tmp_path, capsys):
+    from neus_l0.evaluation.error_maps import colorize
+
+    rc = main(["eval", str(scene / "gt_mesh.ply"), "--scene", str(scene),
+               "--error-maps", str(tmp_path / "maps"), "--vmax", "0.05",
+               "--json", str(tmp_path / "r.json")])
+    assert rc == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["settings"]["distance"] == "point-to-mesh"
+    assert report["accuracy"] < 0.01 and report["completeness"] < 0.01
+    # both maps coloured by the point-to-mesh distances (< 0.001, 2 % of the scale): the
+    # pure-blue bottom of jet; nearest-GT-point distances (~0.05) would reach the top
+    assert colorize(np.array([0.005]), 0.05)[0, :2].tolist() == [0, 0]
+    for name in ("accuracy.ply", "completeness.ply"):
+        cloud = trimesh.load(tmp_path / "maps" / name, process=False)
+        rgba = np.asarray(cloud.visual.vertex_colors, dtype=int)
+        assert (rgba[:, :2] == 0).all(), name
+
+
+def test_cli_tiny_synth_scene_gt_mesh(tiny_scene, tmp_path, capsys):
+    """`neus-l0 synth`'s coarse gt_mesh (marching cubes, voxel 4) against its own scene."""
+    rc = main(["eval", str(tiny_scene / "gt_mesh.ply"), "--scene", str(tiny_scene),
+               "--density", "1.0", "--json", str(tmp_path / "r.json")])
+    assert rc == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["settings"]["distance"] == "point-to-mesh"
+    assert report["accuracy"] < 0.01
+    # what is left is gt_mesh's own faceting: the exact points to a voxel-4 mesh
+    assert report["completeness"] < 0.15
 
 
 def test_scene_errors(scene, tmp_path, capsys):
@@ -242,7 +303,7 @@ def test_scene_errors(scene, tmp_path, capsys):
 
 @pytest.mark.slow
 def test_synth_scene_gt_mesh_scores_zero_against_itself(tmp_path, capsys):
-    """`neus-l0 synth`'s own gt_mesh.ply against its scene: zero up to the GT point spacing."""
+    """`neus-l0 synth`'s own gt_mesh.ply against its scene: zero, point-to-mesh."""
     import inspect
 
     synthetic = pytest.importorskip("neus_l0.data.synthetic")
@@ -252,12 +313,12 @@ def test_synth_scene_gt_mesh_scores_zero_against_itself(tmp_path, capsys):
     kw = {"progress": False} if "progress" in params else {}
     root = Path(synthetic.make_scene("demo", tmp_path / "demo", views=8, width=80, height=60,
                                      seed=0, **kw))
-    n_gt = len(trimesh.load(root / "gt_points.ply", process=False).vertices)
-    spacing = math.sqrt(trimesh.load(root / "gt_mesh.ply").area / n_gt)  # (upper bound)
     rc = main(["eval", str(root / "gt_mesh.ply"), "--scene", str(root)])
     assert rc == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    # surface to randomly placed points `spacing` apart: spacing / 2 on average
-    assert report["accuracy"] < 0.6 * spacing
-    assert report["completeness"] < 0.6 * spacing
+    # point-to-point to GT points 0.5 apart gave ~0.25; point-to-mesh leaves only the
+    # marching-cubes faceting of gt_mesh (measured 0.009 for completeness)
+    assert report["settings"]["distance"] == "point-to-mesh"
+    assert report["accuracy"] < 0.01
+    assert report["completeness"] < 0.01
     assert report["counts"]["pred_kept"] > 0.5 * report["counts"]["pred_in_box"]  # 8 views

@@ -4,6 +4,7 @@ Modules (all pure functions on NumPy arrays, world units):
 
 - `pointcloud`: DTU-style triangle sampling and radius thinning of a mesh.
 - `chamfer`: chunked nearest-neighbour distances and truncated means.
+- `surface`: exact point-to-triangle-mesh distances (synthetic protocol).
 - `dtu`: DTU evaluation files (STL points, ObsMask, Plane) and the DTU protocol.
 - `synthetic`: a synthetic scene's ground truth (points, depth maps, cameras) and visibility.
 - `cull`: IDR / NeuS-style culling of mesh parts outside the dilated object masks.

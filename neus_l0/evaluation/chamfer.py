@@ -73,6 +73,9 @@ class ChamferResult:
         dist_pred: (N_pred,) distance of each scored predicted point (`inf` beyond max_dist).
         dist_gt: (N_gt,) distance of each scored ground-truth point (`inf` beyond max_dist).
         counts: point counts of the protocol's stages (names documented in EVALUATION.md).
+        distance: how distances were measured: "point-to-point" (nearest point, DTU),
+            "point-to-mesh" (exact distance to the other side's surface) or, when the two
+            sides differ, "accuracy: <kind>, completeness: <kind>".
     """
 
     accuracy: float
@@ -82,6 +85,7 @@ class ChamferResult:
     dist_pred: np.ndarray
     dist_gt: np.ndarray
     counts: dict[str, int] = field(default_factory=dict)
+    distance: str = "point-to-point"
 
 
 def chamfer(acc_points: np.ndarray, acc_reference: np.ndarray | cKDTree,
@@ -108,13 +112,31 @@ def chamfer(acc_points: np.ndarray, acc_reference: np.ndarray | cKDTree,
     d_acc = nearest_distances(acc_points, acc_reference, upper_bound=max_dist, workers=workers)
     d_comp = nearest_distances(comp_points, comp_reference, upper_bound=max_dist,
                                workers=workers)
+    return chamfer_from_distances(d_acc, d_comp, max_dist)
+
+
+def chamfer_from_distances(d_acc: np.ndarray, d_comp: np.ndarray, max_dist: float,
+                           distance: str = "point-to-point") -> ChamferResult:
+    """Accuracy and completeness from per-point distances measured elsewhere.
+
+    Args:
+        d_acc: (N,) distance of each scored predicted point to the ground truth.
+        d_comp: (K,) distance of each scored ground-truth point to the prediction.
+        max_dist: distances >= max_dist are left out of the means.
+        distance: how they were measured (stored in `ChamferResult.distance`).
+
+    Returns:
+        A `ChamferResult` (counts: `acc_within`, `comp_within`).
+    """
+    d_acc = np.asarray(d_acc, dtype=np.float64)
+    d_comp = np.asarray(d_comp, dtype=np.float64)
     acc = truncated_mean(d_acc, max_dist)
     comp = truncated_mean(d_comp, max_dist)
     counts = {"acc_within": int((d_acc < max_dist).sum()),
               "comp_within": int((d_comp < max_dist).sum())}
     return ChamferResult(accuracy=acc, completeness=comp, overall=(acc + comp) / 2,
                          max_dist=float(max_dist), dist_pred=d_acc, dist_gt=d_comp,
-                         counts=counts)
+                         counts=counts, distance=distance)
 
 
 def in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

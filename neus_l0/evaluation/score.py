@@ -112,7 +112,8 @@ def score_mesh(mesh: str | Path, *, scene: str | Path | None = None,
                                       workers=workers, **margins)
     else:
         res, masks = synthetic.evaluate_synthetic(pred, gt, max_dist, depth_tol=depth_tol,
-                                                  workers=workers, **margins)
+                                                  workers=workers,
+                                                  pred_mesh=(vertices, faces), **margins)
     counts.update(res.counts)
 
     maps = None
@@ -125,7 +126,10 @@ def score_mesh(mesh: str | Path, *, scene: str | Path | None = None,
         else:
             _, v_scored = synthetic.evaluation_region(vertices, gt, depth_tol=depth_tol,
                                                       **margins)
-        v_dist = nearest_distances(vertices, gt_points, upper_bound=top, workers=workers)
+        if protocol == "dtu":
+            v_dist = nearest_distances(vertices, gt_points, upper_bound=top, workers=workers)
+        else:  # the same distance as accuracy (point-to-mesh with gt_mesh.ply)
+            v_dist = gt.distance_to_gt(vertices, top, workers=workers)
         gt_dist = np.full(len(gt_points), np.inf)
         gt_dist[masks["gt_used"]] = res.dist_gt
         written = write_error_maps(error_maps, vertices, faces, v_dist, v_scored,
@@ -134,7 +138,7 @@ def score_mesh(mesh: str | Path, *, scene: str | Path | None = None,
 
     settings = {"protocol": protocol, "density": density, "thin_radius": density,
                 "max_dist": max_dist, "margin_low": margin_low, "margin_high": margin_high,
-                "seed": seed, "cull": cull_info}
+                "seed": seed, "distance": res.distance, "cull": cull_info}
     if protocol == "synthetic":
         settings["depth_tol"] = depth_tol
     return {

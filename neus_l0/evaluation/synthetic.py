@@ -1,19 +1,27 @@
 """Ground truth of a synthetic scene folder and its visibility-based evaluation region.
 
-Files read (see ARCHITECTURE.md, "A synthetic scene folder"): `gt_points.ply` (points on
-the true surface that some camera sees), `gt_depth.npz` (`depth_i` (H, W): camera-z depth of
-the first true-surface hit through each pixel centre, `inf` on misses) and
-`cameras_sphere.npz` (`world_mat_i`).
+Files read (see ARCHITECTURE.md, "A synthetic scene folder"): `gt_mesh.ply` (the exact true
+surface), `gt_points.ply` (points on the true surface that some camera sees), `gt_depth.npz`
+(`depth_i` (H, W): camera-z depth of the first true-surface hit through each pixel centre,
+`inf` on misses) and `cameras_sphere.npz` (`world_mat_i`).
 
 A predicted point p is *observed* by view i when, with P_n the depth-normalised projection
 (`_scene.depth_projections`), z = (P_n [p, 1])_3 > 0, its pixel (rint(x), rint(y)) lies
 inside the image, and z <= D_i(row, col) + depth_tol, where D_i(row, col) is `inf` where
 `depth_i` is `inf` (the ray misses the object: nothing hides the point) and otherwise the
 largest finite `depth_i` in the 3x3 window around the pixel (so that a point between pixel
-centres on a slanted surface is not hidden by the discretisation). The evaluation mirrors
+centres on a slanted surface is not hidden by the discretisation). The region mirrors
 DTU: the box is [min(gt) - margin_low, max(gt) + margin_high); accuracy scores the
-predicted points in the box and observed by at least one view against all GT points;
-completeness scores all GT points against the predicted points in the box.
+predicted points in the box and observed by at least one view; completeness scores all GT
+points.
+
+Distances are point-to-mesh (`surface.MeshDistance`, exact point-to-triangle): accuracy
+measures each kept predicted point to `gt_mesh.ply`, completeness each GT point to the
+whole predicted mesh (the one that was sampled). The GT points are about 0.5 apart, so
+nearest-GT-point distances would put a floor of about 0.25 under a perfect prediction.
+A scene without `gt_mesh.ply`, or a call without the predicted mesh, falls back to
+point-to-point on that side (accuracy: to all GT points; completeness: to the in-box
+predicted points), and `ChamferResult.distance` says so.
 """
 
 from __future__ import annotations
@@ -27,8 +35,14 @@ import numpy as np
 
 from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation._scene import depth_projections, project, read_world_mats
-from neus_l0.evaluation.chamfer import ChamferResult, build_tree, chamfer, in_box
-from neus_l0.evaluation.io import load_points
+from neus_l0.evaluation.chamfer import (
+    ChamferResult,
+    chamfer_from_distances,
+    in_box,
+    nearest_distances,
+)
+from neus_l0.evaluation.io import load_mesh, load_points
+from neus_l0.evaluation.surface import MeshDistance
 
 #: Default depth tolerance (world units) of the visibility test.
 DEPTH_TOL = 2.0
@@ -46,11 +60,25 @@ class SyntheticGT:
         points: (M, 3) float64 GT surface points seen by some camera.
         projections: (V, 3, 4) float64 `world_mat_i[:3, :4]`.
         depths: V arrays (H_i, W_i) float32 camera-z depth, `inf` on misses.
+        surface: the exact true surface (`gt_mesh.ply`) indexed for point-to-mesh
+            distances, or None when the scene has no `gt_mesh.ply`.
     """
 
     points: np.ndarray
     projections: np.ndarray
     depths: list[np.ndarray]
+    surface: MeshDistance | None = None
+
+    def distance_to_gt(self, points: np.ndarray, upper_bound: float,
+                       workers: int = -1) -> np.ndarray:
+        """(N,) distance of (N, 3) points to the true surface (`inf` if >= upper_bound).
+
+        Point-to-mesh to `gt_mesh.ply`; nearest GT point when the scene has no mesh.
+        """
+        if self.surface is not None:
+            return self.surface.query(points, upper_bound, workers=workers)
+        return nearest_distances(points, self.points, upper_bound=upper_bound,
+                                 workers=workers)
 
 
 def load_depths(path: str | os.PathLike) -> list[np.ndarray]:
@@ -81,7 +109,7 @@ def load_depths(path: str | os.PathLike) -> list[np.ndarray]:
 
 
 def load_synthetic_gt(scene_dir: str | os.PathLike) -> SyntheticGT:
-    """Read gt_points.ply, gt_depth.npz and the cameras of a synthetic scene folder.
+    """Read gt_points.ply, gt_depth.npz, the cameras and (if present) gt_mesh.ply.
 
     Raises:
         NeusL0Error: a missing or malformed file, or depth maps that do not match cameras.
@@ -95,7 +123,11 @@ def load_synthetic_gt(scene_dir: str | os.PathLike) -> SyntheticGT:
     if len(depths) != len(projections):
         raise NeusL0Error(f"{root / 'gt_depth.npz'}: {len(depths)} depth maps for "
                           f"{len(projections)} cameras")
-    return SyntheticGT(points=points, projections=projections, depths=depths)
+    surface = None
+    if (root / "gt_mesh.ply").is_file():
+        surface = MeshDistance(*load_mesh(root / "gt_mesh.ply"))
+    return SyntheticGT(points=points, projections=projections, depths=depths,
+                       surface=surface)
 
 
 def observed(points: np.ndarray, projections: np.ndarray, depths: list[np.ndarray],
@@ -160,27 +192,44 @@ def evaluation_region(points: np.ndarray, gt: SyntheticGT, margin_low: float,
 
 def evaluate_synthetic(pred_points: np.ndarray, gt: SyntheticGT, max_dist: float = 20.0,
                        margin_low: float = 60.0, margin_high: float = 120.0,
-                       depth_tol: float = DEPTH_TOL, workers: int = -1
+                       depth_tol: float = DEPTH_TOL, workers: int = -1,
+                       pred_mesh: tuple[np.ndarray, np.ndarray] | MeshDistance | None = None
                        ) -> tuple[ChamferResult, dict[str, np.ndarray]]:
     """Score predicted points (already sampled and thinned) against a synthetic scene.
 
     Args:
-        pred_points: (N, 3) predicted points (world units).
+        pred_points: (N, 3) predicted points (world units), sampled from `pred_mesh`.
         gt: the scene's ground truth.
         max_dist: truncation distance of both means.
         margin_low, margin_high: box margins around the GT points' bounding box.
         depth_tol: visibility depth tolerance.
         workers: kd-tree query threads.
+        pred_mesh: the predicted mesh ((V, 3) vertices, (F, 3) faces, or an indexed
+            `MeshDistance`): completeness is then the exact distance of each GT point to
+            its surface (the whole mesh: any part outside the box is at least
+            min(margin_low, margin_high) from every GT point). None: to the in-box points.
 
     Returns:
         The result (counts: `pred_in_box`, `pred_kept`, `gt_total`, `gt_used`,
-        `acc_within`, `comp_within`) and masks `pred_in_box` (N,), `pred_kept` (N,),
+        `acc_within`, `comp_within`; `distance`: "point-to-mesh" when both sides are
+        measured to surfaces) and masks `pred_in_box` (N,), `pred_kept` (N,),
         `gt_used` (M,) (all true: the GT points are already restricted to what is seen).
     """
+    pred_points = np.asarray(pred_points, dtype=np.float64).reshape(-1, 3)
     box, kept = evaluation_region(pred_points, gt, margin_low, margin_high, depth_tol)
     gt_used = np.ones(len(gt.points), dtype=bool)
-    res = chamfer(pred_points[kept], build_tree(gt.points), gt.points,
-                  build_tree(pred_points[box]), max_dist, workers=workers)
+    d_acc = gt.distance_to_gt(pred_points[kept], max_dist, workers=workers)
+    if pred_mesh is not None:
+        surf = pred_mesh if isinstance(pred_mesh, MeshDistance) else MeshDistance(*pred_mesh)
+        d_comp = surf.query(gt.points, max_dist, workers=workers)
+    else:
+        d_comp = nearest_distances(gt.points, pred_points[box], upper_bound=max_dist,
+                                   workers=workers)
+    kinds = ("point-to-mesh" if gt.surface is not None else "point-to-point",
+             "point-to-mesh" if pred_mesh is not None else "point-to-point")
+    distance = (kinds[0] if kinds[0] == kinds[1]
+                else f"accuracy: {kinds[0]}, completeness: {kinds[1]}")
+    res = chamfer_from_distances(d_acc, d_comp, max_dist, distance)
     res.counts = {"pred_in_box": int(box.sum()), "pred_kept": int(kept.sum()),
                   "gt_total": len(gt.points), "gt_used": int(gt_used.sum()), **res.counts}
     return res, {"pred_in_box": box, "pred_kept": kept, "gt_used": gt_used}
