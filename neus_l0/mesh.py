@@ -1,12 +1,25 @@
-"""Mesh extraction: SDF on a grid (chunked), marching cubes, clean-up, colours, export.
+"""Mesh extraction: SDF on a grid (dense or sparse), marching cubes, clean-up, colours, export.
 
 Marching cubes runs in the normalised frame (the unit sphere around the object); vertices
 are then mapped to world units with the scene's ``scale_mat``:
 ``x_world = scale_mat[:3, :3] @ x_norm + scale_mat[:3, 3]``.
+
+Two extraction paths share one grid, ``linspace(-bound, bound, R)^3``:
+
+- *dense* (`sdf_grid` + `marching_cubes`): the whole (R, R, R) volume; the plain reference,
+  used for small resolutions.
+- *sparse* (`sparse_marching_cubes`): the SDF on a coarse grid (every `block`-th sample),
+  then densely only inside the blocks that `keep_blocks` says may hold the surface, marching
+  cubes per block and an exact merge of the vertices on shared block faces. It never
+  allocates the dense volume, and gives the dense result for any SDF that is
+  `lipschitz`-Lipschitz (see `keep_blocks`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,6 +33,37 @@ from neus_l0.errors import NeusL0Error
 
 SdfFn = Callable[[Tensor], Tensor]
 """Maps points (P, 3) in the normalised frame to SDF values (P,) or (P, 1)."""
+
+SPARSE_ABOVE = 128
+"""`extract_mesh(method="auto")` uses the sparse path for resolutions above this."""
+
+_NONFINITE = np.float32(1e3)
+"""Non-finite SDF values are read as this (far outside) before marching cubes."""
+
+
+def _sdf_on_axes(sdf_fn: SdfFn, xs: Tensor, ys: Tensor, zs: Tensor,
+                 chunk: int) -> np.ndarray:
+    """Evaluate an SDF on the tensor product grid xs x ys x zs, slab by slab.
+
+    Args:
+        sdf_fn: the SDF (called under `torch.no_grad`).
+        xs, ys, zs: (nx,), (ny,), (nz,) coordinates on the evaluation device.
+        chunk: points per call of `sdf_fn`.
+
+    Returns:
+        (nx, ny, nz) float32 values.
+    """
+    nx, ny, nz = len(xs), len(ys), len(zs)
+    out = np.empty((nx, ny, nz), dtype=np.float32)
+    yz = torch.stack(torch.meshgrid(ys, zs, indexing="ij"), dim=-1).reshape(-1, 2)  # (ny*nz, 2)
+    slabs = max(1, chunk // (ny * nz))
+    with torch.no_grad():
+        for x0 in range(0, nx, slabs):
+            x = xs[x0:x0 + slabs]
+            pts = torch.cat([x.repeat_interleave(ny * nz)[:, None], yz.repeat(len(x), 1)], dim=-1)
+            vals = torch.cat([sdf_fn(p).reshape(-1) for p in pts.split(chunk)])
+            out[x0:x0 + len(x)] = vals.reshape(len(x), ny, nz).float().cpu().numpy()
+    return out
 
 
 def sdf_grid(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
@@ -39,18 +83,8 @@ def sdf_grid(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
     Returns:
         (R, R, R) float32 volume indexed [x, y, z].
     """
-    R = int(resolution)
-    axis = torch.linspace(-bound, bound, R, device=device)
-    out = np.empty((R, R, R), dtype=np.float32)
-    yz = torch.stack(torch.meshgrid(axis, axis, indexing="ij"), dim=-1).reshape(-1, 2)  # (R*R, 2)
-    slabs = max(1, chunk // (R * R))
-    with torch.no_grad():
-        for x0 in range(0, R, slabs):
-            xs = axis[x0:x0 + slabs]
-            pts = torch.cat([xs.repeat_interleave(R * R)[:, None], yz.repeat(len(xs), 1)], dim=-1)
-            vals = torch.cat([sdf_fn(p).reshape(-1) for p in pts.split(chunk)])
-            out[x0:x0 + len(xs)] = vals.reshape(len(xs), R, R).float().cpu().numpy()
-    return out
+    axis = torch.linspace(-bound, bound, int(resolution), device=device)
+    return _sdf_on_axes(sdf_fn, axis, axis, axis, chunk)
 
 
 def to_world(vertices: np.ndarray, scale_mat: np.ndarray) -> np.ndarray:
@@ -87,6 +121,212 @@ def marching_cubes(volume: np.ndarray, bound: float = 1.0,
     verts, faces, _, _ = measure.marching_cubes(volume, level=level, spacing=(step,) * 3,
                                                 gradient_direction="descent")
     return verts.astype(np.float64) - bound, faces.astype(np.int64)
+
+
+@dataclasses.dataclass
+class ExtractionStats:
+    """What an extraction cost.
+
+    Attributes:
+        method: "dense" or "sparse".
+        resolution: R, grid samples per axis.
+        sdf_evals: points the SDF was evaluated at (coarse + fine for sparse).
+        dense_evals: R^3, what the dense grid costs.
+        blocks: blocks in the grid (sparse; 0 for dense).
+        blocks_kept: blocks evaluated densely (sparse).
+        blocks_surface: kept blocks whose samples cross the level (marching cubes ran).
+        seconds: wall time of SDF evaluation + marching cubes + merge.
+    """
+
+    method: str
+    resolution: int
+    sdf_evals: int
+    dense_evals: int
+    blocks: int = 0
+    blocks_kept: int = 0
+    blocks_surface: int = 0
+    seconds: float = 0.0
+
+
+def keep_blocks(coarse: np.ndarray, block_diag: float, lipschitz: float = 1.5,
+                level: float = 0.0, dilate: int = 1) -> np.ndarray:
+    """Which blocks of a grid may hold a piece of the level set, from their corner values.
+
+    Block (i, j, k) spans the cube between coarse samples [i, i+1] x [j, j+1] x [k, k+1].
+    Marching cubes puts triangles in a fine cell only when its corners lie on both sides
+    of `level` (value > level against value <= level); then the continuous SDF f equals
+    `level` somewhere on one of the cell's edges, at a point p inside the block. If f is
+    L-Lipschitz, every corner c of the block has |f(c) - level| <= L |c - p| <= L d, with
+    d the block diagonal. So a block is dropped only when some corner has
+    |f(c) - level| > `lipschitz` * d, and it is **kept** when:
+
+    - all 8 corners satisfy |f(c) - level| <= `lipschitz` * `block_diag` (exact for an
+      L-Lipschitz SDF with L <= `lipschitz`: sparse and dense extraction then agree), or
+    - its corners are on both sides of `level`, or it lies within `dilate` blocks
+      (26-neighbourhood) of such a block (a guard for networks steeper than `lipschitz`
+      near a surface that is larger than a block), or
+    - a corner value is not finite.
+
+    Args:
+        coarse: (n0 + 1, n1 + 1, n2 + 1) SDF at the block corners.
+        block_diag: the diagonal of a (full) block, in the SDF's units.
+        lipschitz: assumed bound on |grad f| (analytic SDFs and their CSG: 1; trained
+            networks are near 1 at the surface thanks to the eikonal loss).
+        level: the iso-value.
+        dilate: blocks of dilation around the blocks whose corners change sign.
+
+    Returns:
+        (n0, n1, n2) bool, True for blocks to evaluate densely.
+    """
+    g = coarse.astype(np.float32) - np.float32(level)  # (n0+1, n1+1, n2+1)
+    n0, n1, n2 = (s - 1 for s in g.shape)
+    corners = [g[a:a + n0, b:b + n1, c:c + n2] for a in (0, 1) for b in (0, 1) for c in (0, 1)]
+    absmax = np.zeros((n0, n1, n2), np.float32)
+    n_pos = np.zeros((n0, n1, n2), np.uint8)
+    bad = np.zeros((n0, n1, n2), bool)
+    for c in corners:
+        np.maximum(absmax, np.abs(c), out=absmax)
+        n_pos += c > 0
+        bad |= ~np.isfinite(c)
+    straddle = (n_pos > 0) & (n_pos < 8) & ~bad  # (n0, n1, n2)
+    if dilate > 0 and straddle.any():
+        from scipy import ndimage
+
+        straddle = ndimage.binary_dilation(straddle, np.ones((3, 3, 3), bool), iterations=dilate)
+    near = absmax <= np.float32(lipschitz * block_diag)  # NaN compares False: caught by bad
+    return near | straddle | bad
+
+
+def _merge_blocks(verts: list[np.ndarray], faces: list[np.ndarray],
+                  on_face: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Join per-block meshes, merging the candidate vertices that have identical coordinates.
+
+    Args:
+        verts: per block (V_b, 3) vertices in global grid units (float32 values: a block's
+            local coordinates plus its integer offset, rounded as the dense path rounds).
+        faces: per block (F_b, 3) indices into that block's vertices.
+        on_face: per block (V_b,) bool, the vertex may have a twin: it lies on the block's
+            boundary or on a grid node.
+
+    Returns:
+        vertices (V, 3) float64 in grid units and faces (F, 3) int64; faces that the merge
+        made degenerate (a repeated index) are dropped.
+    """
+    sizes = np.array([len(v) for v in verts], np.int64)
+    base = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    V = np.concatenate(verts)  # (V, 3)
+    F = np.concatenate([f.astype(np.int64) + b for f, b in zip(faces, base, strict=True)])
+    cand = np.flatnonzero(np.concatenate(on_face))  # vertices that may be shared
+    remap = np.arange(len(V), dtype=np.int64)
+    if len(cand):
+        keys = np.ascontiguousarray(V[cand]).view(np.dtype((np.void, 24))).ravel()
+        _, first, inv = np.unique(keys, return_index=True, return_inverse=True)
+        remap[cand] = cand[first[inv.reshape(-1)]]
+    used, newid = np.unique(remap, return_inverse=True)
+    F = newid.reshape(-1)[F]  # (F, 3)
+    ok = (F[:, 0] != F[:, 1]) & (F[:, 1] != F[:, 2]) & (F[:, 0] != F[:, 2])
+    return V[used], F[ok]
+
+
+def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
+                          level: float = 0.0, device: str | torch.device = "cpu",
+                          chunk: int = 2**18, block: int = 8, lipschitz: float = 1.5,
+                          dilate: int = 1) -> tuple[np.ndarray, np.ndarray, ExtractionStats]:
+    """Marching cubes of an SDF on ``linspace(-bound, bound, R)^3``, evaluated near the surface.
+
+    1. The SDF at every `block`-th grid sample per axis (the last sample always included):
+       ((R - 1) / block + 1)^3 evaluations.
+    2. `keep_blocks` picks the blocks that may hold the surface.
+    3. Kept blocks are evaluated on their (block + 1)^3 grid samples (one sample of overlap
+       with each neighbour; blocks at the far end are cut to the grid), in batches of at
+       most `chunk` points on `device`; the grid coordinates are the dense path's own, so a
+       sample has the same value in both paths.
+    4. scikit-image marching cubes per block that crosses `level`; vertices on shared block
+       faces come from the same grid edge and values in both blocks, hence have identical
+       coordinates (in float32 grid units, as the dense path computes them), and are merged
+       exactly: the mesh is watertight where the surface is
+       closed.
+
+    Memory: the coarse grid, one batch of blocks and the output mesh; never the R^3 volume.
+
+    Args:
+        sdf_fn: the SDF, (P, 3) -> (P,) or (P, 1) (called under `torch.no_grad`).
+        resolution: R, samples per axis.
+        bound: half-size of the cube.
+        level: the iso-value.
+        device: where points are evaluated.
+        chunk: the most points per call of `sdf_fn`.
+        block: cells per block edge.
+        lipschitz, dilate: the block rule (see `keep_blocks`).
+
+    Returns:
+        vertices (V, 3) float64 in the normalised frame, faces (F, 3) int64 (outward normals),
+        and the `ExtractionStats`.
+
+    Raises:
+        NeusL0Error: when no block crosses `level` (no surface inside the cube).
+    """
+    from skimage import measure
+
+    t0 = time.perf_counter()
+    R, B = int(resolution), int(block)
+    if R < 2 or B < 1:
+        raise NeusL0Error(f"resolution {R} and block {B}: need resolution >= 2 and block >= 1")
+    cells = R - 1
+    nb = -(-cells // B)  # blocks per axis
+    step = 2.0 * bound / cells
+    axis = torch.linspace(-bound, bound, R, device=device)  # the dense path's coordinates
+    cidx = torch.as_tensor(np.minimum(np.arange(nb + 1) * B, cells), device=device)
+    ca = axis[cidx]
+    coarse = _sdf_on_axes(sdf_fn, ca, ca, ca, chunk)  # (nb+1, nb+1, nb+1)
+    evals = (nb + 1) ** 3
+    kept = np.argwhere(keep_blocks(coarse, math.sqrt(3.0) * B * step, lipschitz, level,
+                                   dilate))  # (K, 3)
+    del coarse
+    extent = np.minimum(B, cells - kept * B) + 1  # (K, 3) samples per axis in each block
+
+    per_block = (B + 1) ** 3
+    m = max(1, chunk // per_block)  # blocks per batch
+    ar = torch.arange(B + 1, device=device)
+    verts, faces, on_face = [], [], []
+    n_surface = 0
+    for s in range(0, len(kept), m):
+        bi = torch.as_tensor(kept[s:s + m], device=device)  # (m, 3)
+        idx = (bi[:, :, None] * B + ar).clamp_max(cells)  # (m, 3, B+1)
+        c = axis[idx]  # (m, 3, B+1)
+        pts = torch.stack(torch.broadcast_tensors(c[:, 0, :, None, None], c[:, 1, None, :, None],
+                                                  c[:, 2, None, None, :]), dim=-1)
+        pts = pts.reshape(-1, 3)  # (m * (B+1)^3, 3)
+        with torch.no_grad():
+            vals = torch.cat([sdf_fn(p).reshape(-1) for p in pts.split(chunk)])
+        evals += len(pts)
+        vals = vals.float().cpu().numpy().reshape(len(bi), B + 1, B + 1, B + 1)
+        vals[~np.isfinite(vals)] = _NONFINITE
+        # clamped samples repeat the last layer, so min/max over the padded block are exact
+        g = vals.reshape(len(bi), -1)
+        cross = (g.max(1) > level) & (g.min(1) <= level)  # (m,)
+        for j in np.flatnonzero(cross):
+            e = extent[s + j]
+            v, f, _, _ = measure.marching_cubes(vals[j, :e[0], :e[1], :e[2]], level=level,
+                                                gradient_direction="descent")
+            # global grid units rounded to float32 like the dense path's vertices: a vertex
+            # at a node can come out at local 0 + 1e-15 in one block and at B in the next
+            lo = (kept[s + j] * B).astype(np.float32)
+            gv = v + lo  # (V_b, 3) float32
+            verts.append(gv.astype(np.float64))
+            faces.append(f)
+            # merge candidates: on the block's boundary (shared with a neighbour), or on a
+            # grid node (sdf == level there: scikit-image emits one vertex per edge)
+            on_face.append(((gv == lo) | (gv == lo + (e - 1))).any(1)
+                           | (gv == np.round(gv)).all(1))
+        n_surface += int(cross.sum())
+    if not verts:
+        raise NeusL0Error(f"no surface: the SDF does not cross {level} inside the cube "
+                          f"[-{bound}, {bound}]^3 (sparse extraction at {R}^3)")
+    V, F = _merge_blocks(verts, faces, on_face)
+    stats = ExtractionStats("sparse", R, evals, R**3, nb**3, len(kept), n_surface,
+                            time.perf_counter() - t0)
+    return V * step - bound, F, stats
 
 
 def clean_mesh(mesh: trimesh.Trimesh, keep_largest: bool = True,
@@ -140,7 +380,8 @@ def vertex_colors(model, vertices: np.ndarray, device: str | torch.device = "cpu
 
 def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: float = 1.0,
                  clean: bool = True, colors: bool = False, device: str | torch.device = "cpu",
-                 chunk: int = 2**18) -> trimesh.Trimesh:
+                 chunk: int = 2**18, method: str = "auto", block: int = 8,
+                 lipschitz: float = 1.5) -> trimesh.Trimesh:
     """The trained SDF's zero level set in world units.
 
     Args:
@@ -150,18 +391,38 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
         clean: keep only the largest connected component.
         colors: vertex colours from the colour network.
         device, chunk: where and how many points at a time the SDF is evaluated.
+        method: "dense" (the whole grid), "sparse" (`sparse_marching_cubes`) or "auto"
+            (sparse above `SPARSE_ABOVE` samples per axis).
+        block, lipschitz: the sparse path's block size and block rule.
 
     Returns:
-        the mesh in world units.
+        the mesh in world units; ``mesh.metadata["extraction"]`` holds the
+        `ExtractionStats` as a dict (method, SDF evaluations, seconds, ...).
     """
-    volume = sdf_grid(lambda p: model.sdf.sdf(p), resolution, bound, device, chunk)
-    verts, faces = marching_cubes(volume, bound)
+    if method not in ("auto", "dense", "sparse"):
+        raise NeusL0Error(f"mesh method '{method}': use auto, dense or sparse")
+    if method == "auto":
+        method = "sparse" if resolution > SPARSE_ABOVE else "dense"
+
+    def f(p: Tensor) -> Tensor:
+        return model.sdf.sdf(p)
+
+    if method == "sparse":
+        verts, faces, stats = sparse_marching_cubes(f, resolution, bound, device=device,
+                                                    chunk=chunk, block=block,
+                                                    lipschitz=lipschitz)
+    else:
+        t0 = time.perf_counter()
+        verts, faces = marching_cubes(sdf_grid(f, resolution, bound, device, chunk), bound)
+        R = int(resolution)
+        stats = ExtractionStats("dense", R, R**3, R**3, seconds=time.perf_counter() - t0)
     mesh = trimesh.Trimesh(verts, faces, process=False)
     if clean:
         mesh = clean_mesh(mesh)
     if colors:
         mesh.visual.vertex_colors = vertex_colors(model, np.asarray(mesh.vertices), device)
     mesh.vertices = to_world(np.asarray(mesh.vertices), scale_mat)
+    mesh.metadata["extraction"] = dataclasses.asdict(stats)
     return mesh
 
 

@@ -15,6 +15,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="keep only the largest connected component (default on)")
     p.add_argument("--colors", action="store_true",
                    help="vertex colours from the colour network (view = -normal)")
+    p.add_argument("--method", default="auto", choices=["auto", "dense", "sparse"],
+                   help="dense grid, or sparse (the SDF evaluated only in blocks near the "
+                        "surface); auto: sparse above 128 samples per axis (default)")
     p.add_argument("--checkpoint", default=None, help="a specific checkpoint (default newest)")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"])
     return p
@@ -37,9 +40,14 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     model, _, info = load_trained_model(args.run, device, args.checkpoint)
     mesh = extract_mesh(model, np.asarray(info["scale_mat"]), resolution=args.resolution,
-                        clean=args.clean, colors=args.colors, device=device)
+                        clean=args.clean, colors=args.colors, device=device,
+                        method=args.method)
     out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
     export_mesh(mesh, out)
+    st = mesh.metadata["extraction"]
+    print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "
+          f"evaluations ({st['sdf_evals'] / st['dense_evals']:.1%} of the dense grid), "
+          f"{st['seconds']:.1f} s")
     print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, world units "
           f"(checkpoint {info['path'].name}, iteration {info['iteration']}, "
           f"{time.monotonic() - t0:.1f} s)")
