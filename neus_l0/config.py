@@ -33,11 +33,37 @@ class EncodingConfig:
     """An input encoding (see `neus_l0.fields.encodings.build_encoding`)."""
 
     kind: str = "frequency"
-    """Encoding kind: `frequency` (NeRF positional encoding) or `identity`."""
+    """Encoding kind: `frequency` (NeRF positional encoding), `identity` or `hashgrid`
+    (Instant-NGP multiresolution hash grid; 3-D inputs only, used for the SDF network)."""
     n_freqs: int = 6
-    """Number of octaves 2^0 .. 2^(n_freqs-1) of the frequency encoding (0: input only)."""
+    """Number of octaves 2^0 .. 2^(n_freqs-1) of the frequency encoding (0: input only).
+    For `hashgrid`: frequency bands added between the raw input and the grid features."""
     include_input: bool = True
-    """Whether the raw input is concatenated in front of the sines and cosines."""
+    """Whether the raw input is concatenated in front of the sines and cosines (or of the
+    grid features)."""
+    n_levels: int = 16
+    """`hashgrid`: number of resolution levels."""
+    n_features: int = 2
+    """`hashgrid`: features per level."""
+    log2_hashmap_size: int = 19
+    """`hashgrid`: log2 of the entries of each hashed level's table."""
+    base_resolution: int = 16
+    """`hashgrid`: cells per axis of the coarsest level."""
+    per_level_scale: float = 0.0
+    """`hashgrid`: resolution growth factor between levels (0: derive it from
+    `finest_resolution`)."""
+    finest_resolution: int = 2048
+    """`hashgrid`: cells per axis of the finest level, when `per_level_scale` is 0."""
+    bound: float = 1.0
+    """`hashgrid`: the grid covers [-bound, bound]^3 (the unit sphere's box)."""
+    init_scale: float = 1e-4
+    """`hashgrid`: table entries start uniform in [-init_scale, init_scale]."""
+    lr_scale: float = 1.0
+    """`hashgrid`: the table learns at `train.lr * lr_scale` (with Adam)."""
+    start_level: int | None = None
+    """`hashgrid`: progressive levels: active levels at the start (None: all, always)."""
+    update_steps: int = 1000
+    """`hashgrid`: training iterations between activating one more level."""
 
 
 @dataclass
@@ -121,6 +147,34 @@ class ModelConfig:
 
 
 @dataclass
+class OccupancyConfig:
+    """Occupancy grid that keeps coarse samples out of empty space (`neus_l0.occupancy`).
+
+    Off in `wmask` / `womask` (which reproduce NeuS). When on, rays that miss the unit
+    sphere or cross no occupied cell get no samples and no network work, and the coarse
+    samples of the others lie in the span [first occupied, last occupied] along the ray."""
+
+    enabled: bool = False
+    """Use the grid in training and rendering."""
+    resolution: int = 64
+    """Cells per axis over [-1, 1]^3 (a multiple of `block`)."""
+    update_every: int = 16
+    """Training iterations between grid updates (the first update is at iteration 0)."""
+    margin: float = 1.5
+    """Slack on the 1-Lipschitz bound: a cell is occupied when |sdf(centre)| <=
+    margin * half-diagonal + widths / s."""
+    widths: float = 6.0
+    """Logistic widths 1 / s (s: the current sharpness) added to the bound."""
+    hold: int = 2
+    """Updates a cell stays occupied after it last passed the test."""
+    block: int = 4
+    """Cells per axis of the blocks tested first in an update (1: test every cell)."""
+    compact: bool = True
+    """Drop the rays that cross nothing before any network work (on CUDA one host sync
+    per batch, to learn how many rays remain); off: keep the batch rectangular."""
+
+
+@dataclass
 class RenderConfig:
     """Sampling along rays and compositing (NeuS's `neus_renderer` block)."""
 
@@ -150,6 +204,12 @@ class RenderConfig:
     """Composite over white instead of black (no background model)."""
     chunk: int = 1024
     """Rays per chunk when rendering whole images (validation)."""
+    cull_outside_sphere: bool = False
+    """Rays that miss the unit sphere get no samples and no SDF work (zero opacity, or the
+    background model alone), and the coarse samples of the others lie on the sphere's chord
+    instead of NeuS's [mid - 1, mid + 1]. Implied by `occupancy.enabled`."""
+    occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
+    """The occupancy grid (off by default)."""
 
 
 @dataclass
@@ -186,6 +246,12 @@ class TrainConfig:
     """How many of the newest checkpoints to keep."""
     max_seconds: float = 0.0
     """Wall-clock budget: stop and checkpoint after this many seconds (0: no budget)."""
+    amp: str = "off"
+    """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
+    scaler and fused Adam); ignored on the CPU."""
+    eikonal_fraction: float = 1.0
+    """Fraction of the samples (drawn at random each step) that the Eikonal term averages
+    over; 1: all samples within radius 1.2 (NeuS)."""
 
 
 @dataclass
@@ -307,10 +373,25 @@ def _validate(obj: Any, prefix: str) -> None:
     if isinstance(obj, Config) and obj.sampler not in SAMPLERS:
         raise bad("sampler", f"unknown sampler {obj.sampler!r} (choose from {', '.join(SAMPLERS)})")
     if isinstance(obj, EncodingConfig):
-        if obj.kind not in ("frequency", "identity"):
-            raise bad("kind", f"unknown encoding {obj.kind!r} (frequency, identity)")
+        if obj.kind not in ("frequency", "identity", "hashgrid"):
+            raise bad("kind", f"unknown encoding {obj.kind!r} (frequency, identity, hashgrid)")
         if obj.n_freqs < 0:
             raise bad("n_freqs", "must be >= 0")
+        if obj.kind == "hashgrid":
+            for name in ("n_levels", "n_features", "base_resolution", "update_steps"):
+                if getattr(obj, name) < 1:
+                    raise bad(name, "must be >= 1")
+            if not 4 <= obj.log2_hashmap_size <= 30:
+                raise bad("log2_hashmap_size", "must be in 4 .. 30")
+            if obj.per_level_scale < 0 or 0 < obj.per_level_scale < 1:
+                raise bad("per_level_scale", "must be >= 1 (or 0: from finest_resolution)")
+            if obj.per_level_scale == 0 and obj.finest_resolution < obj.base_resolution:
+                raise bad("finest_resolution", "must be >= base_resolution")
+            for name in ("bound", "init_scale", "lr_scale"):
+                if not getattr(obj, name) > 0:
+                    raise bad(name, "must be > 0")
+            if obj.start_level is not None and obj.start_level < 0:
+                raise bad("start_level", "must be >= 0 (or null: all levels)")
     if isinstance(obj, ColorConfig) and obj.mode not in ("idr", "no_view_dir", "no_normal"):
         raise bad("mode", f"unknown mode {obj.mode!r} (idr, no_view_dir, no_normal)")
     if isinstance(obj, RenderConfig):
@@ -323,7 +404,19 @@ def _validate(obj: Any, prefix: str) -> None:
         if obj.up_sample_steps and obj.n_importance % obj.up_sample_steps:
             raise bad("n_importance", f"{obj.n_importance} is not a multiple of "
                       f"up_sample_steps={obj.up_sample_steps}")
+    if isinstance(obj, OccupancyConfig):
+        if obj.block < 1 or obj.resolution < 1 or obj.resolution % obj.block:
+            raise bad("resolution", f"{obj.resolution} must be a positive multiple of "
+                      f"block={obj.block}")
+        if obj.update_every < 1 or obj.hold < 0:
+            raise bad("update_every", "update_every must be >= 1 and hold >= 0")
+        if obj.margin < 1.0 or obj.widths < 0.0:
+            raise bad("margin", "margin must be >= 1 and widths >= 0")
     if isinstance(obj, TrainConfig):
+        if obj.amp not in ("off", "bf16", "fp16"):
+            raise bad("amp", f"unknown choice {obj.amp!r} (off, bf16, fp16)")
+        if not 0.0 < obj.eikonal_fraction <= 1.0:
+            raise bad("eikonal_fraction", "must be in (0, 1]")
         for name in ("iters", "batch_size", "log_every"):
             if getattr(obj, name) < 1:
                 raise bad(name, "must be >= 1")

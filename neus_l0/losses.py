@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -68,3 +70,30 @@ def neus_loss(out: dict[str, Tensor], target_rgb: Tensor, mask: Tensor, igr_weig
         "mask_loss": mloss,
         "psnr": masked_psnr(out["color"].detach(), target_rgb, mask),
     }
+
+
+def eikonal_subset(gradients: Tensor, mask: Tensor, fraction: float,
+                   generator: torch.Generator | None = None) -> Tensor:
+    """The Eikonal term over a random subset of the samples (drawn with replacement).
+
+    A fixed number of samples, ``ceil(fraction * B * N)``, is drawn uniformly; the term is
+    the mean of ``(|grad| - 1)^2`` over the drawn samples that `mask` keeps, so its
+    expectation is close to the full masked mean and its shapes never depend on the data
+    (no host synchronisation).
+
+    Args:
+        gradients: (B, N, 3) SDF gradients; mask: (B, N) in {0, 1} (samples that count).
+        fraction: in (0, 1].
+        generator: random source (on the tensors' device).
+
+    Returns:
+        () loss.
+    """
+    g = gradients.reshape(-1, 3)
+    m = mask.reshape(-1)
+    k = max(1, math.ceil(fraction * m.numel()))
+    idx = torch.randint(0, max(1, m.numel()), (k,), generator=generator, device=g.device)
+    if m.numel() == 0:
+        return g.sum() * 0.0
+    eik = (g[idx].norm(dim=-1) - 1.0) ** 2
+    return (m[idx] * eik).sum() / (m[idx].sum() + 1e-5)

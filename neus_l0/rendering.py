@@ -31,6 +31,7 @@ from torch import Tensor
 
 from neus_l0.config import RenderConfig
 from neus_l0.fields import NeuSModel, sdf_and_gradient
+from neus_l0.occupancy import OccupancyGrid
 from neus_l0.sampling import sample_l0, sample_pdf
 
 #: Sampler names and the `sample_l0` kind each uses (None: NeuS's piecewise constant).
@@ -267,7 +268,7 @@ def up_sample(model: NeuSModel, origins: Tensor, dirs: Tensor, z: Tensor, cfg: R
     new_all = []
     with torch.no_grad():
         pts = origins[:, None, :] + dirs[:, None, :] * z[..., None]  # (B, N, 3)
-        sdf = model.sdf.sdf(pts.reshape(-1, 3)).reshape(B, -1)
+        sdf = model.sdf.sdf(pts.reshape(-1, 3)).float().reshape(B, z.shape[1])
         radius = pts.norm(dim=-1)
         for i in range(steps):
             w = upsample_section_weights(z, sdf, radius, 64.0 * 2**i)  # (B, N-1)
@@ -278,7 +279,7 @@ def up_sample(model: NeuSModel, origins: Tensor, dirs: Tensor, z: Tensor, cfg: R
                 z, _ = merge_sorted(z, new_z)
             else:
                 new_pts = origins[:, None, :] + dirs[:, None, :] * new_z[..., None]
-                new_sdf = model.sdf.sdf(new_pts.reshape(-1, 3)).reshape(B, per_round)
+                new_sdf = model.sdf.sdf(new_pts.reshape(-1, 3)).float().reshape(B, per_round)
                 z_all, sdf = merge_sorted(z, new_z, sdf, new_sdf)
                 _, radius = merge_sorted(z, new_z, radius, new_pts.norm(dim=-1))
                 z = z_all
@@ -302,15 +303,88 @@ def background_alpha_color(model: NeuSModel, origins: Tensor, dirs: Tensor, z: T
     pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]  # (B, M, 3)
     d = dirs[:, None, :].expand(B, M, 3)
     sigma, rgb = model.background(pts.reshape(-1, 3), d.reshape(-1, 3))
+    sigma, rgb = sigma.float(), rgb.float()
     alpha = 1.0 - torch.exp(-sigma.reshape(B, M) * dists)
     return alpha, rgb.reshape(B, M, 3)
+
+
+def sphere_chord(origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Where each ray is inside the unit sphere.
+
+    Args:
+        origins: (B, 3); dirs: (B, 3) unit.
+
+    Returns:
+        t_in, t_out: (B, 1) the chord's ends, clamped to t >= 0 (NeuS's near / far,
+        ``mid -+ 1``, for rays that miss); hits: (B,) bool, whether the ray meets the
+        sphere in front of its origin.
+    """
+    near, far = near_far_from_sphere(origins, dirs)
+    mid = 0.5 * (near + far)  # (B, 1) closest approach
+    closest = origins + mid * dirs
+    half2 = 1.0 - (closest * closest).sum(-1, keepdim=True)  # (B, 1)
+    half = half2.clamp_min(0.0).sqrt()
+    t_in, t_out = (mid - half).clamp_min(0.0), mid + half
+    hits = (half2[:, 0] > 0.0) & (t_out[:, 0] > 0.0)
+    t_in = torch.where(hits[:, None], t_in, near)
+    t_out = torch.where(hits[:, None], t_out, far)
+    return t_in, t_out, hits
+
+
+def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
+                cfg: RenderConfig, sampler: str, cos_anneal_ratio: float, perturb: bool,
+                generator: torch.Generator | None, create_graph: bool,
+                sample_dist: float | Tensor) -> dict[str, Tensor]:
+    """Samples in [near, far], up-sampling, and the SDF / colour networks on them.
+
+    Args:
+        origins, dirs: (b, 3); near, far: (b, 1).
+        sample_dist: length of the last section (a number or (b, 1)).
+
+    Returns:
+        dict with ``z`` (b, N) sorted, ``z_fine`` (b, n_importance), ``dists`` and ``mid``
+        (b, N), ``pts`` (b, N, 3) at the midpoints, ``gradients`` (b, N, 3), ``rgb``
+        (b, N, 3) and ``alpha`` (b, N), all float32 (network outputs are cast back from
+        any autocast precision).
+    """
+    b = origins.shape[0]
+    z = coarse_z_vals(near, far, cfg.n_samples, perturb, generator)
+    z, z_fine = up_sample(model, origins, dirs, z, cfg, sampler)
+    N = z.shape[1]
+    last = (sample_dist.expand(b, 1) if isinstance(sample_dist, Tensor)
+            else torch.full_like(z[:, :1], sample_dist))
+    dists = torch.cat([z[:, 1:] - z[:, :-1], last], dim=-1)
+    mid = z + 0.5 * dists  # (b, N)
+    pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]  # (b, N, 3)
+    d = dirs[:, None, :].expand(b, N, 3)
+    out, grad = sdf_and_gradient(model.sdf, pts.reshape(-1, 3), create_graph=create_graph)
+    out, grad = out.float(), grad.float()
+    sdf = out[:, 0].reshape(b, N)
+    gradients = grad.reshape(b, N, 3)
+    rgb = model.color(pts.reshape(-1, 3), grad, d.reshape(-1, 3), out[:, 1:])
+    rgb = rgb.float().reshape(b, N, 3)
+    inv_s = model.variance.inv_s()
+    true_cos = (d * gradients).sum(-1)  # (b, N)
+    alpha = cos_anneal_alpha(sdf, true_cos, dists, inv_s, cos_anneal_ratio)
+    return {"z": z, "z_fine": z_fine, "dists": dists, "mid": mid, "pts": pts,
+            "gradients": gradients, "rgb": rgb, "alpha": alpha}
 
 
 def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
                 sampler: str = "l0", *, cos_anneal_ratio: float = 1.0, perturb: bool = False,
                 generator: torch.Generator | None = None,
-                create_graph: bool = False) -> dict[str, Tensor]:
+                create_graph: bool = False, occupancy: OccupancyGrid | None = None
+                ) -> dict[str, Tensor]:
     """Render a batch of rays with NeuS.
+
+    Skipping work (off by default, so NeuS is reproduced): with `cfg.cull_outside_sphere`
+    or an `occupancy` grid, a ray's coarse samples lie on its chord of the unit sphere,
+    tightened to the span of occupied cells (`OccupancyGrid.spans`); rays that miss the
+    sphere or cross no occupied cell are *inactive*: no samples, no SDF / colour work
+    (with `cfg.occupancy.compact`), zero opacity inside [near, far] (the background model,
+    if any, still renders them). Their per-sample outputs hold zeros at NeuS's uniform
+    positions. The coarse samples keep their number per ray (rectangular tensors), so
+    a tightened span means denser coarse samples where the surface can be.
 
     Args:
         model: the networks; `model.background` is used when `cfg.n_outside > 0`.
@@ -321,42 +395,52 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         perturb: jitter the coarse (and background) samples, drawing from `generator`.
         generator: random source of the jitter.
         create_graph: keep the graph of the SDF gradients (training: Eikonal loss).
+        occupancy: an occupancy grid (None: none).
 
     Returns:
         dict with ``color`` (B, 3); ``weights`` (B, N [+ n_outside]); ``weight_sum`` (B, 1);
         ``gradients`` (B, N, 3) at the section midpoints; ``gradient_error`` () the Eikonal
-        term over samples within radius 1.2; ``depth`` (B, 1) the weighted mean of the
+        term over samples within radius 1.2; ``eikonal_mask`` (B, N) those samples;
+        ``depth`` (B, 1) the weighted mean of the
         midpoints inside the sphere; ``normal`` (B, 3) the weighted sum of gradients inside
         the sphere (not normalised, as NeuS); ``z_vals`` (B, N) all sorted sample positions;
         ``z_fine`` (B, n_importance) the up-sampled ones; ``mid_z_vals`` (B, N);
-        ``inside_sphere`` (B, N); ``s_val`` (1,) = 1 / s.
+        ``inside_sphere`` (B, N); ``active`` (B,) rays that got samples; ``s_val`` (1,)
+        = 1 / s.
     """
     B = origins.shape[0]
     near, far = near_far_from_sphere(origins, dirs)
-    z = coarse_z_vals(near, far, cfg.n_samples, perturb, generator)
     use_bg = cfg.n_outside > 0 and model.background is not None
     z_out = (outside_z_vals(far, cfg.n_outside, cfg.n_samples, perturb, generator)
              if use_bg else None)
-
-    z, z_fine = up_sample(model, origins, dirs, z, cfg, sampler)
+    args = (cfg, sampler, cos_anneal_ratio, perturb, generator, create_graph)
+    cull = cfg.cull_outside_sphere or occupancy is not None
+    if not cull:
+        fg = _foreground(model, origins, dirs, near, far, *args, 2.0 / cfg.n_samples)
+        active = torch.ones(B, dtype=torch.bool, device=origins.device)
+    else:
+        lo, hi, active = sphere_chord(origins, dirs)
+        if occupancy is not None:
+            lo, hi, crosses = occupancy.spans(origins, dirs, lo, hi)
+            active = active & crosses
+        step = (hi - lo) / cfg.n_samples  # (B, 1)
+        if cfg.occupancy.compact:
+            idx = active.nonzero().squeeze(1)  # the only host sync (CUDA) of culling
+            sub = _foreground(model, origins[idx], dirs[idx], lo[idx], hi[idx], *args,
+                              step[idx])
+            fg = _scatter_rows(sub, idx, origins, dirs, near, far, cfg)
+        else:
+            fg = _foreground(model, origins, dirs, lo, hi, *args, step)
+            keep = active[:, None].to(fg["alpha"].dtype)
+            fg["alpha"] = fg["alpha"] * keep
+            fg["rgb"] = fg["rgb"] * keep[..., None]
+    z, mid, alpha, rgb, gradients = fg["z"], fg["mid"], fg["alpha"], fg["rgb"], fg["gradients"]
     N = z.shape[1]
     sample_dist = 2.0 / cfg.n_samples
 
-    dists = torch.cat([z[:, 1:] - z[:, :-1], torch.full_like(z[:, :1], sample_dist)], dim=-1)
-    mid = z + 0.5 * dists  # (B, N)
-    pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]  # (B, N, 3)
-    d = dirs[:, None, :].expand(B, N, 3)
-    out, grad = sdf_and_gradient(model.sdf, pts.reshape(-1, 3), create_graph=create_graph)
-    sdf = out[:, 0].reshape(B, N)
-    gradients = grad.reshape(B, N, 3)
-    rgb = model.color(pts.reshape(-1, 3), grad, d.reshape(-1, 3), out[:, 1:]).reshape(B, N, 3)
-    inv_s = model.variance.inv_s()
-    true_cos = (d * gradients).sum(-1)  # (B, N)
-    alpha = cos_anneal_alpha(sdf, true_cos, dists, inv_s, cos_anneal_ratio)
-
-    pts_norm = pts.norm(dim=-1)
+    pts_norm = fg["pts"].norm(dim=-1)
     inside = (pts_norm < 1.0).to(alpha.dtype).detach()
-    relax_inside = (pts_norm < 1.2).to(alpha.dtype).detach()
+    relax_inside = ((pts_norm < 1.2) & active[:, None]).to(alpha.dtype).detach()
 
     if use_bg:
         bg_alpha, bg_rgb = background_alpha_color(model, origins, dirs,
@@ -385,24 +469,56 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         "weight_sum": weight_sum,
         "gradients": gradients,
         "gradient_error": gradient_error,
+        "eikonal_mask": relax_inside,
         "depth": depth,
         "normal": normal,
         "z_vals": z,
-        "z_fine": z_fine,
+        "z_fine": fg["z_fine"],
         "mid_z_vals": mid,
         "inside_sphere": inside,
-        "s_val": 1.0 / inv_s,
+        "active": active,
+        "s_val": 1.0 / model.variance.inv_s(),
     }
+
+
+def _scatter_rows(sub: dict[str, Tensor], idx: Tensor, origins: Tensor, dirs: Tensor,
+                  near: Tensor, far: Tensor, cfg: RenderConfig) -> dict[str, Tensor]:
+    """Put the foreground of the active rays `idx` back among all B rays.
+
+    Inactive rows get NeuS's uniform positions in [near, far] (no jitter), zero alpha,
+    colour and gradients. Differentiable with respect to the active rows.
+
+    Args:
+        sub: `_foreground` output for the rows `idx` (b,).
+        origins, dirs: (B, 3); near, far: (B, 1).
+    """
+    B = near.shape[0]
+    N = cfg.n_samples + (cfg.n_importance if cfg.up_sample_steps else 0)
+    z = coarse_z_vals(near, far, N, perturb=False)  # (B, N)
+    dists = torch.cat([z[:, 1:] - z[:, :-1], torch.full_like(z[:, :1], 2.0 / cfg.n_samples)],
+                      dim=-1)
+    mid = z + 0.5 * dists
+    full = {
+        "z": z, "dists": dists, "mid": mid,
+        "z_fine": near.expand(B, sub["z_fine"].shape[1]),
+        "pts": origins[:, None, :] + dirs[:, None, :] * mid[..., None],
+        "gradients": torch.zeros(B, N, 3, dtype=z.dtype, device=z.device),
+        "rgb": torch.zeros(B, N, 3, dtype=z.dtype, device=z.device),
+        "alpha": torch.zeros(B, N, dtype=z.dtype, device=z.device),
+    }
+    return {k: v.index_copy(0, idx, sub[k].to(v.dtype)) for k, v in full.items()}
 
 
 def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
                  sampler: str = "l0", cos_anneal_ratio: float = 1.0,
-                 chunk: int | None = None) -> dict[str, Tensor]:
+                 chunk: int | None = None,
+                 occupancy: OccupancyGrid | None = None) -> dict[str, Tensor]:
     """Render whole images in chunks of rays, without jitter or training graph.
 
     Args:
         origins, dirs: (H, W, 3).
         chunk: rays per chunk (default `cfg.chunk`).
+        occupancy: an occupancy grid to skip empty space with (see `render_rays`).
 
     Returns:
         dict with ``color`` (H, W, 3), ``normal`` (H, W, 3), ``depth`` (H, W) and
@@ -415,7 +531,8 @@ def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderCon
     parts: dict[str, list[Tensor]] = {k: [] for k in keys}
     for start in range(0, o.shape[0], chunk):
         out = render_rays(model, o[start:start + chunk], d[start:start + chunk], cfg, sampler,
-                          cos_anneal_ratio=cos_anneal_ratio, perturb=False)
+                          cos_anneal_ratio=cos_anneal_ratio, perturb=False,
+                          occupancy=occupancy)
         for k in keys:
             parts[k].append(out[k].detach())
     res = {k: torch.cat(v, dim=0) for k, v in parts.items()}

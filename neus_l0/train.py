@@ -16,6 +16,7 @@ accumulated metrics are read back every ``train.log_every`` iterations only.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -39,7 +40,8 @@ from neus_l0.data.rays import pixel_grid, pixel_rays, random_rays
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields import NeuSModel, build_model
-from neus_l0.losses import neus_loss
+from neus_l0.losses import eikonal_subset, neus_loss
+from neus_l0.occupancy import OccupancyGrid
 from neus_l0.rendering import render_image, render_rays
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
 
@@ -79,8 +81,47 @@ def make_model(cfg: Config, device: str | torch.device = "cpu") -> NeuSModel:
 
 
 def make_optimizer(model: NeuSModel, cfg: Config) -> torch.optim.Adam:
-    """Adam over every network's parameters at the peak learning rate."""
-    return torch.optim.Adam(model.parameters(), lr=cfg.train.lr)
+    """Adam over every network's parameters at the peak learning rate.
+
+    With ``train.amp = fp16`` on CUDA the fused Adam is used: it takes the gradient
+    scaler's inf check on the device, so `GradScaler.step` needs no host synchronisation.
+    """
+    on_cuda = next(model.parameters()).is_cuda
+    fused = cfg.train.amp == "fp16" and on_cuda
+    return torch.optim.Adam(model.parameters(), lr=cfg.train.lr, fused=fused or None)
+
+
+def amp_enabled(cfg: Config, device: torch.device | str) -> bool:
+    """Whether mixed precision applies: `train.amp` is not ``off`` and the device is CUDA."""
+    return cfg.train.amp != "off" and torch.device(device).type == "cuda"
+
+
+def autocast(cfg: Config, device: torch.device | str) -> contextlib.AbstractContextManager:
+    """`torch.autocast` for the networks per `train.amp` (a no-op on the CPU or when off)."""
+    if not amp_enabled(cfg, device):
+        return contextlib.nullcontext()
+    dtype = torch.bfloat16 if cfg.train.amp == "bf16" else torch.float16
+    return torch.autocast(device_type="cuda", dtype=dtype)
+
+
+def make_scaler(cfg: Config, device: torch.device | str) -> torch.amp.GradScaler:
+    """NeuS's loss scaler for ``train.amp = fp16`` on CUDA (disabled otherwise)."""
+    enabled = amp_enabled(cfg, device) and cfg.train.amp == "fp16"
+    return torch.amp.GradScaler("cuda", enabled=enabled)
+
+
+def make_occupancy(cfg: Config, device: torch.device | str) -> OccupancyGrid | None:
+    """The occupancy grid of `render.occupancy` (None when it is off)."""
+    if not cfg.render.occupancy.enabled:
+        return None
+    return OccupancyGrid(cfg.render.occupancy, device)
+
+
+def update_occupancy(grid: OccupancyGrid | None, model: NeuSModel, cfg: Config,
+                     iteration: int) -> None:
+    """Re-test the grid every `render.occupancy.update_every` iterations (from 0)."""
+    if grid is not None and iteration % cfg.render.occupancy.update_every == 0:
+        grid.update(model.sdf.sdf, model.variance.inv_s())
 
 
 def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config, iteration: int) -> float:
@@ -93,8 +134,14 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config, iteration: 
 
 
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
-               iteration: int, generator: torch.Generator) -> Tensor:
-    """One optimisation step on a random batch of rays (no host synchronisation).
+               iteration: int, generator: torch.Generator, *,
+               occupancy: OccupancyGrid | None = None,
+               scaler: torch.amp.GradScaler | None = None) -> Tensor:
+    """One optimisation step on a random batch of rays.
+
+    No host synchronisation, except where a switch asks for one on CUDA: the occupancy
+    grid's ray compaction (`render.occupancy.compact`, once per step) and its update
+    (once per `update_every` steps).
 
     Args:
         model, optimizer: the networks and their optimiser.
@@ -102,6 +149,8 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
         cfg: the run config.
         iteration: the current iteration (sets the learning rate and the cos annealing).
         generator: the source of the ray batch and of the sample jitter.
+        occupancy: the occupancy grid (updated here every `update_every` iterations).
+        scaler: the fp16 gradient scaler (`make_scaler`); None: none.
 
     Returns:
         (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order.
@@ -110,13 +159,24 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     batch = random_rays(scene, cfg.train.batch_size, generator)
     use_mask = cfg.train.mask_weight > 0
     mask = (batch["mask"] > 0.5).float() if use_mask else torch.ones_like(batch["mask"])
-    out = render_rays(model, batch["origins"], batch["dirs"], cfg.render, cfg.sampler,
-                      cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end),
-                      perturb=cfg.render.perturb, generator=generator, create_graph=True)
+    update_occupancy(occupancy, model, cfg, iteration)
+    with autocast(cfg, scene.device):
+        out = render_rays(model, batch["origins"], batch["dirs"], cfg.render, cfg.sampler,
+                          cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end),
+                          perturb=cfg.render.perturb, generator=generator, create_graph=True,
+                          occupancy=occupancy)
+    if cfg.train.eikonal_fraction < 1.0:
+        out["gradient_error"] = eikonal_subset(out["gradients"], out["eikonal_mask"],
+                                               cfg.train.eikonal_fraction, generator)
     losses = neus_loss(out, batch["rgb"], mask, cfg.train.igr_weight, cfg.train.mask_weight)
     optimizer.zero_grad(set_to_none=True)
-    losses["loss"].backward()
-    optimizer.step()
+    if scaler is not None and scaler.is_enabled():
+        scaler.scale(losses["loss"]).backward()
+        scaler.step(optimizer)
+        scaler.update()
+    else:
+        losses["loss"].backward()
+        optimizer.step()
     values = [losses[k] for k in METRIC_NAMES[:-1]] + [out["s_val"].reshape(())]
     return torch.stack([v.detach().reshape(()) for v in values])
 
@@ -135,7 +195,7 @@ def validation_views(scene: Scene, view: int, downscale: int) -> tuple[Tensor, T
 
 
 def validation_image(model: NeuSModel, scene: Scene, cfg: Config, view: int,
-                     iteration: int) -> np.ndarray:
+                     iteration: int, occupancy: OccupancyGrid | None = None) -> np.ndarray:
     """Ground truth | rendered colour | normals (camera frame) of a downscaled view.
 
     Returns:
@@ -143,7 +203,8 @@ def validation_image(model: NeuSModel, scene: Scene, cfg: Config, view: int,
     """
     o, d, rgb = validation_views(scene, view, max(1, cfg.train.val_downscale))
     out = render_image(model, o, d, cfg.render, cfg.sampler,
-                       cos_anneal_ratio(iteration, cfg.train.anneal_end))
+                       cos_anneal_ratio(iteration, cfg.train.anneal_end),
+                       occupancy=occupancy)
     rot = scene.c2w[view, :3, :3]  # camera -> world
     normal_cam = out["normal"] @ rot  # (h, w, 3) world -> camera: n^T R = (R^T n)^T
     tiles = [rgb, out["color"].clamp(0, 1), (normal_cam * 0.5 + 0.5).clamp(0, 1)]
@@ -244,6 +305,8 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
 
     model = make_model(cfg, device)
     optimizer = make_optimizer(model, cfg)
+    scaler = make_scaler(cfg, device)
+    occupancy = make_occupancy(cfg, device)
     generator = torch.Generator(device=device)
     generator.manual_seed(cfg.train.seed)
     iteration = 0
@@ -255,6 +318,12 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
             raise NeusL0Error(f"{last}: does not fit the config's networks (resume with the "
                               f"run's config.yaml): {str(exc).splitlines()[0]}") from None
         _restore_rng(generator, ckpt_state["rng"])
+        if occupancy is not None and "occupancy" in ckpt_state:
+            occupancy.load_state_dict(ckpt_state["occupancy"])
+        elif occupancy is not None:  # a checkpoint from a run without the grid
+            occupancy.update(model.sdf.sdf, model.variance.inv_s())
+        if "scaler" in ckpt_state:
+            scaler.load_state_dict(ckpt_state["scaler"])
         iteration = int(ckpt_state["iteration"])
         del ckpt_state
 
@@ -277,6 +346,10 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
             "scale_mat": np.asarray(scene.scale_mat).tolist(),
             "has_background": model.background is not None,
         }
+        if occupancy is not None:
+            state["occupancy"] = occupancy.state_dict()
+        if scaler.is_enabled():
+            state["scaler"] = scaler.state_dict()
         return save_checkpoint(checkpoint_path(run_dir, iteration), state,
                                keep=cfg.train.keep_checkpoints)
 
@@ -291,7 +364,8 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     log_t0, log_it0 = time.monotonic(), iteration
     model.train()
     while iteration < t.iters:
-        acc += train_step(model, optimizer, scene, cfg, iteration, generator)
+        acc += train_step(model, optimizer, scene, cfg, iteration, generator,
+                          occupancy=occupancy, scaler=scaler)
         acc_n += 1
         iteration += 1
         bar.update(1)
@@ -327,7 +401,7 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
         if t.val_every and iteration % t.val_every == 0:
             view = (iteration // t.val_every) % scene.n_views
             model.eval()
-            img = validation_image(model, scene, cfg, view, iteration)
+            img = validation_image(model, scene, cfg, view, iteration, occupancy)
             model.train()
             _write_png(run_dir / "validation" / f"{iteration:07d}_v{view:03d}.png", img)
         if t.save_every and iteration % t.save_every == 0:

@@ -218,3 +218,150 @@ def test_render_image_shapes():
                        RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2), chunk=5)
     assert out["color"].shape == (3, 4, 3) and out["depth"].shape == (3, 4)
     assert not out["color"].requires_grad
+
+
+# ------------------------------------------------------------------------------------------
+# Skipping work: sphere culling and the occupancy grid.
+
+
+class CountingSphere(AnalyticSphere):
+    """`AnalyticSphere` that counts the points it is evaluated at."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.points = 0
+
+    def forward(self, x):
+        self.points += x.shape[0]
+        return super().forward(x)
+
+
+def counting_model(s_init=0.6):
+    return NeuSModel(CountingSphere(), ColorNetwork(ColorConfig(hidden=16, layers=2), 8),
+                     SingleVariance(VarianceConfig(init=s_init)))
+
+
+def sphere_grid(model, resolution=64):
+    from neus_l0.config import OccupancyConfig
+    from neus_l0.occupancy import OccupancyGrid
+
+    grid = OccupancyGrid(OccupancyConfig(enabled=True, resolution=resolution))
+    grid.update(model.sdf.sdf, model.variance.inv_s())
+    return grid
+
+
+@pytest.mark.parametrize("sampler", ["hvs", "l0"])
+def test_grid_gives_the_same_render_on_rays_that_hit(sampler):
+    torch.manual_seed(0)
+    model = sphere_model()
+    o, d, hit, t_hit = rays_at_sphere(256)
+    ref = render_rays(model, o, d, RenderConfig(), sampler)
+    grid = sphere_grid(model)
+    assert grid.fraction_occupied() < 0.1
+    for compact in (True, False):
+        cfg = RenderConfig(cull_outside_sphere=True)
+        cfg.occupancy.compact = compact
+        out = render_rays(model, o, d, cfg, sampler, occupancy=grid)
+        for k, v in out.items():
+            assert torch.isfinite(v).all(), k
+        assert out["active"][hit].all()
+        assert (out["color"][hit] - ref["color"][hit]).abs().max() < 1e-3
+        assert (out["depth"][hit] - ref["depth"][hit]).abs().max() < 2e-3
+        assert (out["depth"][hit, 0] - t_hit[hit]).abs().mean() < 5e-3
+        assert (out["weight_sum"][hit] - ref["weight_sum"][hit]).abs().max() < 2e-3
+        # samples only inside the tightened span: none more than the band (about
+        # 1.5 half-diagonals + 6 / s + a dilated cell + a lookup step) before the surface
+        assert (out["z_vals"][hit].min(dim=-1).values > t_hit[hit] - 0.25).all()
+        assert (ref["z_vals"][hit].min(dim=-1).values < t_hit[hit] - 0.4).all()
+
+
+def test_rays_that_cross_no_occupied_cell_do_no_sdf_work():
+    model = counting_model()
+    grid = sphere_grid(model)
+    # rays through the unit sphere that pass the r = 0.5 sphere at distance >= 0.8
+    o = torch.tensor([[-3.0, 0.8, 0.0], [-3.0, 0.0, -0.85], [0.9, -3.0, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    model.sdf.points = 0
+    out = render_rays(model, o, d, RenderConfig(), "l0", occupancy=grid, create_graph=True)
+    assert model.sdf.points == 0
+    assert not out["active"].any()
+    assert torch.equal(out["weight_sum"], torch.zeros(3, 1))
+    assert torch.equal(out["color"], torch.zeros(3, 3))
+    assert out["gradient_error"] == 0
+    # mixed with hitting rays, only those are evaluated
+    o2 = torch.cat([o, torch.tensor([[-3.0, 0.0, 0.0]])])
+    d2 = torch.cat([d, torch.tensor([[1.0, 0.0, 0.0]])])
+    model.sdf.points = 0
+    cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2)
+    out = render_rays(model, o2, d2, cfg, "l0", occupancy=grid)
+    assert out["active"].tolist() == [False, False, False, True]
+    per_ray = 16 + 8 + 32  # coarse + one intermediate round + the final pass
+    assert model.sdf.points == per_ray
+
+
+def test_rays_missing_the_sphere_get_no_samples():
+    model = counting_model()
+    o = torch.tensor([[-3.0, 1.2, 0.0], [0.0, 0.0, 3.0], [-3.0, 0.0, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # miss, behind, hit
+    model.sdf.points = 0
+    cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2,
+                       cull_outside_sphere=True)
+    out = render_rays(model, o, d, cfg, "l0")
+    assert out["active"].tolist() == [False, False, True]
+    assert model.sdf.points == 16 + 8 + 32
+    assert torch.equal(out["weight_sum"][:2], torch.zeros(2, 1))
+    assert out["weight_sum"][2] > 0.99
+    # the hitting ray's coarse samples lie on its chord of the unit sphere, [2, 4]
+    z = out["z_vals"][2]
+    assert z.min() >= 2.0 - 1e-5 and z.max() <= 4.0 + 1e-5
+
+
+def test_no_background_network_with_masks():
+    from neus_l0.config import load_config
+    from neus_l0.train import make_model
+
+    cfg = load_config("wmask", ["model.sdf.hidden=48", "model.color.hidden=16"])
+    assert cfg.train.mask_weight > 0 and cfg.render.n_outside == 0
+    assert make_model(cfg).background is None
+    assert make_model(load_config("womask")).background is not None
+
+    class Forbidden(nn.Module):
+        def forward(self, *args):
+            raise AssertionError("the background model was called")
+
+    model = sphere_model()
+    model.background = Forbidden()
+    o, d, _, _ = rays_at_sphere(8)
+    render_rays(model, o, d, RenderConfig(n_outside=0), "l0")
+
+
+def test_culling_keeps_the_background_model_for_missed_rays():
+    torch.manual_seed(0)
+    from neus_l0.config import ModelConfig, SDFConfig
+
+    mcfg = ModelConfig(sdf=SDFConfig(hidden=32, layers=2, skip=[], feature_dim=8))
+    mcfg.color.hidden = mcfg.background.hidden = 16
+    mcfg.background.layers, mcfg.background.skip = 2, []
+    model = build_model(mcfg, background=True)
+    cfg = RenderConfig(n_samples=8, n_importance=8, up_sample_steps=2, n_outside=8,
+                       cull_outside_sphere=True)
+    o = torch.tensor([[-3.0, 1.5, 0.0], [-3.0, 0.0, 0.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    out = render_rays(model, o, d, cfg, "l0", create_graph=True)
+    assert out["active"].tolist() == [False, True]
+    assert (out["weights"][0, -8:] > 0).all()  # the background still renders the miss
+    out["color"].sum().backward()
+    assert model.background.rgb.weight.grad.abs().sum() > 0
+
+
+def test_eikonal_subset_estimates_the_full_term():
+    from neus_l0.losses import eikonal_subset
+
+    g = torch.Generator().manual_seed(0)
+    grads = torch.randn(64, 32, 3, generator=g)
+    mask = (torch.rand(64, 32, generator=g) < 0.7).float()
+    full = (mask * (grads.norm(dim=-1) - 1.0) ** 2).sum() / mask.sum()
+    sub = torch.stack([eikonal_subset(grads, mask, 0.25, g) for _ in range(50)])
+    assert (sub.mean() - full).abs() < 0.05 * full
+    assert torch.isclose(eikonal_subset(grads, torch.zeros_like(mask), 0.5, g),
+                         torch.zeros(()))
