@@ -1,21 +1,65 @@
-"""`neus-l0 figures`: figures of pits and thin structures compared between samplers.
-
-Not implemented yet: the benchmark issue brings it.
-"""
+"""`neus-l0 figures`: pits and thin structures compared between samplers, from a bench folder."""
 
 from __future__ import annotations
 
 import argparse
 
-from neus_l0.commands._pending import not_yet
-
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
-    p = sub.add_parser(name, help="figures of pits and thin structures compared between samplers "
-                                  "[pending: the benchmark issue]")
-    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    p = sub.add_parser(name, help="figures of pits and thin structures compared between samplers",
+                       description="From a `neus-l0 bench` folder: the ground-truth mesh and "
+                                   "each sampler's mesh rendered headless (shaded and coloured "
+                                   "by the distance to the true surface), with zoomed crops on "
+                                   "every pit and thin part; the coarse weights and the "
+                                   "samplers' densities along a ray into a pit; and index.md.")
+    p.add_argument("--bench", required=True, metavar="DIR",
+                   help="output folder of `neus-l0 bench`")
+    p.add_argument("--out", required=True, metavar="FIGDIR",
+                   help="folder for the PNGs and index.md")
+    p.add_argument("--scene", default=None,
+                   help="scene name (default: pits-and-thin if the bench has it, else the "
+                        "only one)")
+    p.add_argument("--budget", type=float, default=None,
+                   help="training budget in seconds (default: the largest all samplers finished)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="training seed (default: the smallest all samplers finished)")
+    p.add_argument("--samplers", default="hvs,l0",
+                   help="comma-separated samplers to compare (default hvs,l0)")
+    p.add_argument("--pit", default=None,
+                   help="features.json name of the pit for the ray figure (default: the pit "
+                        "whose bottom a camera sees deepest)")
+    p.add_argument("--error-max", type=float, default=None,
+                   help="top of the error colour scale, world units (default: 95th percentile)")
+    p.add_argument("--width", type=int, default=480, help="overview width in pixels (480)")
+    p.add_argument("--crop", type=int, default=192, help="side of the zoomed crops in pixels (192)")
     return p
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_yet("figures", "the benchmark issue")
+    from pathlib import Path
+
+    import torch
+
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.figures.make import make_figures, write_index
+    from neus_l0.figures.runs import select_runs
+
+    samplers = [s.strip() for s in args.samplers.split(",") if s.strip()]
+    if not samplers or len(set(samplers)) != len(samplers):
+        raise NeusL0Error(f"--samplers {args.samplers!r}: give distinct sampler names")
+    if args.width < 32 or args.crop < 32:
+        raise NeusL0Error("--width and --crop must be at least 32 pixels")
+    bench, out = Path(args.bench), Path(args.out)
+    scene_dir, runs = select_runs(bench, samplers, args.scene, args.budget, args.seed)
+    with torch.no_grad():
+        entries = make_figures(scene_dir, runs, out, args.width, args.crop, args.error_max,
+                               args.pit)
+    first = next(iter(runs.values()))
+    command = (f"neus-l0 figures --bench {bench} --out {out} --scene {first.scene}"
+               f" --budget {first.budget_s:g} --seed {first.seed}"
+               f" --samplers {','.join(samplers)}")
+    index = write_index(out, entries, bench, runs, scene_dir, command)
+    for e in entries:
+        print(out / e.file)
+    print(index)
+    return 0

@@ -1,0 +1,10 @@
+"""Figures comparing samplers on pits and thin structures (`neus-l0 figures`).
+
+- `runs`: pick the runs of one scene / budget / seed from a `neus-l0 bench` folder.
+- `views`: cameras for the figures (an overview scene camera, a virtual camera per feature)
+  and the crop boxes of the features.
+- `render`: headless mesh renders (shaded and coloured by the distance to the true surface).
+- `compose`: the side-by-side PNGs of the meshes.
+- `ray_weights`: coarse weights and the two up-sampling densities along one ray into a pit.
+- `index`: `index.md`, one entry per figure.
+"""

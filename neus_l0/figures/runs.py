@@ -1,0 +1,134 @@
+"""Finding the runs to draw in a `neus-l0 bench` folder.
+
+A bench folder holds ``results.csv`` (one row per run: scene, sampler, budget_s, seed,
+status, ..., run_dir, mesh), ``scenes/<scene>/`` and
+``runs/<scene>__<sampler>__<budget>s__seed<seed>/`` (config.yaml, checkpoints/, mesh.ply).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+
+from neus_l0.errors import NeusL0Error
+
+#: Scene drawn when none is asked for and the bench holds it.
+DEFAULT_SCENE = "pits-and-thin"
+
+
+@dataclasses.dataclass
+class BenchRun:
+    """One finished run of the bench.
+
+    Attributes:
+        scene, sampler: names; budget_s: training budget (seconds); seed: training seed.
+        run_dir: the training run folder; mesh: its world-unit mesh.
+        row: the results.csv row (strings).
+    """
+
+    scene: str
+    sampler: str
+    budget_s: float
+    seed: int
+    run_dir: Path
+    mesh: Path
+    row: dict
+
+    @property
+    def label(self) -> str:
+        """Short description: sampler, budget, seed."""
+        return f"{self.sampler} ({self.budget_s:g} s, seed {self.seed})"
+
+
+def read_results(bench: Path) -> list[dict]:
+    """Rows of ``bench/results.csv`` (raises NeusL0Error if the folder or file is missing)."""
+    bench = Path(bench)
+    if not bench.is_dir():
+        raise NeusL0Error(f"{bench}: no such bench folder (run `neus-l0 bench` first)")
+    path = bench / "results.csv"
+    if not path.is_file():
+        raise NeusL0Error(f"{path}: missing (is {bench} a `neus-l0 bench` output folder?)")
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    need = {"scene", "sampler", "budget_s", "seed", "status"}
+    if rows and not need <= set(rows[0]):
+        raise NeusL0Error(f"{path}: missing columns {', '.join(sorted(need - set(rows[0])))}")
+    return rows
+
+
+def _resolve(bench: Path, value: str | None, fallback: Path) -> Path:
+    """A path from results.csv: absolute, relative to the bench folder, or the fallback."""
+    if value:
+        p = Path(value)
+        for cand in (p, bench / p, bench.parent / p):
+            if cand.exists():
+                return cand
+    return fallback
+
+
+def _run_name(scene: str, sampler: str, budget: float, seed: int) -> str:
+    return f"{scene}__{sampler}__{budget:g}s__seed{seed}"
+
+
+def select_runs(bench: str | Path, samplers: list[str], scene: str | None = None,
+                budget: float | None = None, seed: int | None = None
+                ) -> tuple[Path, dict[str, BenchRun]]:
+    """The scene folder and one finished run per sampler, all on the same scene/budget/seed.
+
+    Defaults: scene `DEFAULT_SCENE` if the bench has finished runs of it (else the only
+    scene), the largest budget and then the smallest seed that every sampler finished.
+
+    Returns:
+        (scene_dir, {sampler: BenchRun}).
+
+    Raises:
+        NeusL0Error: missing folder / file, no finished run of a sampler, missing run folder.
+    """
+    bench = Path(bench)
+    rows = [r for r in read_results(bench) if r.get("status", "").strip() == "done"]
+    where = bench / "results.csv"
+    if scene is None:
+        scenes = sorted({r["scene"] for r in rows})
+        if not scenes:
+            raise NeusL0Error(f"{where}: no finished runs (status 'done')")
+        if DEFAULT_SCENE in scenes:
+            scene = DEFAULT_SCENE
+        elif len(scenes) == 1:
+            scene = scenes[0]
+        else:
+            raise NeusL0Error(f"{where}: several scenes ({', '.join(scenes)}): choose one "
+                              "with --scene")
+    rows = [r for r in rows if r["scene"] == scene]
+    for s in samplers:
+        if not any(r["sampler"] == s for r in rows):
+            raise NeusL0Error(f"{where}: no finished run of sampler '{s}' on scene '{scene}'")
+
+    def key(r):
+        return float(r["budget_s"]), int(float(r["seed"]))
+
+    common = set.intersection(*({key(r) for r in rows if r["sampler"] == s} for s in samplers))
+    if budget is not None:
+        common = {k for k in common if abs(k[0] - budget) < 1e-9}
+    if seed is not None:
+        common = {k for k in common if k[1] == seed}
+    if not common:
+        raise NeusL0Error(f"{where}: no budget/seed that all of {', '.join(samplers)} finished "
+                          f"on scene '{scene}'"
+                          + (f" (asked budget {budget:g})" if budget is not None else "")
+                          + (f" (asked seed {seed})" if seed is not None else ""))
+    b, sd = max(common, key=lambda k: (k[0], -k[1]))
+    scene_dir = bench / "scenes" / scene
+    if not (scene_dir / "gt_mesh.ply").is_file():
+        raise NeusL0Error(f"{scene_dir}: no gt_mesh.ply (the bench's scene folder is missing)")
+    runs = {}
+    for s in samplers:
+        row = next(r for r in rows if r["sampler"] == s and key(r) == (b, sd))
+        run_dir = _resolve(bench, row.get("run_dir"), bench / "runs" / _run_name(scene, s, b, sd))
+        if not run_dir.is_dir():
+            raise NeusL0Error(f"{run_dir}: run folder of {s} (budget {b:g} s, seed {sd}) missing")
+        mesh = _resolve(bench, row.get("mesh"), run_dir / "mesh.ply")
+        if not mesh.is_file():
+            raise NeusL0Error(f"{mesh}: mesh of the {s} run missing")
+        runs[s] = BenchRun(scene, s, b, sd, run_dir, mesh, row)
+    return scene_dir, runs
