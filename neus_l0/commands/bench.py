@@ -1,21 +1,131 @@
-"""`neus-l0 bench`: sweep scenes x samplers x budgets and record time against error.
-
-Not implemented yet: the benchmark issue brings it.
-"""
+"""`neus-l0 bench`: sweep scenes x samplers x budgets x seeds and record time against error."""
 
 from __future__ import annotations
 
 import argparse
 
-from neus_l0.commands._pending import not_yet
+from neus_l0.commands._overrides import accept_overrides
+
+
+def _list(kind):
+    def parse(text: str) -> list:
+        items = [t.strip() for t in text.split(",") if t.strip()]
+        if not items:
+            raise argparse.ArgumentTypeError("empty list")
+        try:
+            return [kind(t) for t in items]
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    return parse
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
-    p = sub.add_parser(name, help="sweep scenes x samplers x budgets and record time against error "
-                                  "[pending: the benchmark issue]")
-    p.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    p = sub.add_parser(
+        name, help="sweep scenes x samplers x budgets and record time against error",
+        description="Train one run per (scene, sampler, budget, seed) with a wall-clock budget "
+                    "(train.max_seconds), extract its mesh, score it (Chamfer), render the "
+                    "held-out views (PSNR), and log the distance of the up-sampled samples to "
+                    "the true surface during training. Every run uses the same config and "
+                    "iteration schedule and stops by wall-clock. Results go to "
+                    "DIR/results.csv and DIR/results.json, plots to DIR/plots/; re-running "
+                    "skips finished runs.")
+    p.add_argument("--scenes", type=_list(str), metavar="A,B",
+                   help="built-in scene names (demo, pits-and-thin; synthesised into "
+                        "DIR/scenes/) or scene folders")
+    p.add_argument("--samplers", type=_list(str), default=["hvs", "l0"], metavar="A,B",
+                   help="samplers (default hvs,l0)")
+    p.add_argument("--seconds", type=_list(float), metavar="T1,T2",
+                   help="wall-clock training budgets in seconds, e.g. 60,240")
+    p.add_argument("--seeds", type=_list(int), default=[0], metavar="S1,S2",
+                   help="seeds (default 0)")
+    p.add_argument("--out", metavar="DIR", help="sweep folder")
+    p.add_argument("--conf", default="wmask",
+                   help="config shared by every run: demo, fast, wmask (default), womask or a "
+                        "YAML path")
+    p.add_argument("--views", type=int, default=49, help="views of synthesised scenes (49)")
+    p.add_argument("--width", type=int, default=400, help="width of synthesised scenes (400)")
+    p.add_argument("--height", type=int, default=300, help="height of synthesised scenes (300)")
+    p.add_argument("--holdout", type=int, default=8, metavar="K",
+                   help="hold out every K-th view (0, K, 2K, ...) from training for PSNR "
+                        "(default 8; 0: none)")
+    p.add_argument("--device", default=None, choices=["cpu", "cuda"],
+                   help="default: cuda when available")
+    p.add_argument("--backend", default="local", choices=["local", "ray"],
+                   help="local: one run after another (default); ray: Ray tasks")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads per run (default: torch's; use 1 on a shared CPU)")
+    p.add_argument("--resolution", type=int, default=256,
+                   help="marching-cubes resolution of each run's mesh (256)")
+    p.add_argument("--eval-density", type=float, default=0.2,
+                   help="Chamfer sampling density in world units (0.2, the DTU protocol)")
+    p.add_argument("--sample-rays", type=int, default=256,
+                   help="rays of the fine-sample distance probe (256)")
+    p.add_argument("--timeout", type=float, default=None,
+                   help="kill a run's process after this many seconds (default: no limit)")
+    p.add_argument("--plot-only", metavar="DIR", default=None,
+                   help="only redraw DIR/plots/ from DIR/results.json")
+    p.add_argument("--no-plots", action="store_true", help="do not draw DIR/plots/")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    accept_overrides(p)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
-    return not_yet("bench", "the benchmark issue")
+    from pathlib import Path
+
+    from neus_l0.errors import NeusL0Error
+
+    if args.plot_only:
+        from neus_l0.bench.plots import write_plots
+
+        folder = Path(args.plot_only)
+        if not (folder / "results.json").is_file() and not (folder / "results.csv").is_file():
+            raise NeusL0Error(f"{folder}: no results.json or results.csv (run a sweep first)")
+        for path in write_plots(folder):
+            print(path)
+        return 0
+
+    missing = [f"--{k}" for k in ("scenes", "seconds", "out") if not getattr(args, k)]
+    if missing:
+        raise NeusL0Error(f"bench needs {', '.join(missing)} (or --plot-only DIR)")
+    from neus_l0.commands.train import pick_device
+    from neus_l0.config import SAMPLERS
+
+    bad = [s for s in args.samplers if s not in SAMPLERS]
+    if bad:
+        raise NeusL0Error(f"--samplers: unknown {', '.join(bad)} (choose from "
+                          f"{', '.join(SAMPLERS)})")
+    if any(not b > 0 for b in args.seconds):
+        raise NeusL0Error("--seconds: budgets must be positive")
+    owned = [o for o in args.overrides
+             if o.split("=", 1)[0] in ("sampler", "train.seed", "train.max_seconds")]
+    if owned:
+        raise NeusL0Error(f"{', '.join(owned)}: set by the sweep (use --samplers, --seeds, "
+                          "--seconds)")
+    if args.resolution < 8:
+        raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
+
+    from neus_l0.bench.sweep import run_sweep
+
+    device = pick_device(args.device)
+    outcome = run_sweep(
+        args.out, args.scenes, args.samplers, args.seconds, args.seeds, conf=args.conf,
+        overrides=args.overrides, views=args.views, width=args.width, height=args.height,
+        holdout=args.holdout, device=device, threads=args.threads,
+        resolution=args.resolution, eval_density=args.eval_density,
+        sample_rays=args.sample_rays, backend=args.backend, progress=not args.quiet,
+        timeout=args.timeout)
+    failed = [r for r in outcome.rows if r["status"] != "done"]
+    print(f"{len(outcome.ran)} runs done now, {len(outcome.skipped)} skipped (done before), "
+          f"{len(failed)} failed in {args.out}")
+    for r in failed:
+        print(f"  failed: {r['run_dir']}: {r['error']}")
+    out = Path(args.out)
+    print(f"results: {out / 'results.csv'}, {out / 'results.json'}")
+    if not args.no_plots:
+        from neus_l0.bench.plots import write_plots
+
+        write_plots(out, outcome.rows)
+        print(f"plots:   {out / 'plots'}/ (chamfer_vs_time.png, psnr_vs_time.png, "
+              "sample_distance.png, table.md)")
+    return 0

@@ -1,0 +1,193 @@
+"""Figures and the table of a sweep folder, written into ``DIR/plots/``.
+
+* ``chamfer_vs_time.png``: overall Chamfer distance against the wall-clock budget, a panel
+  per scene, a line per sampler (mean over seeds, band = min..max over seeds);
+* ``psnr_vs_time.png``: held-out PSNR against the budget, drawn the same way;
+* ``sample_distance.png``: mean distance of the fine samples to the true surface against
+  the iteration (``sample_dist`` of metrics.jsonl), a panel per scene, one line per seed of
+  each sampler's longest run;
+* ``table.md``: the final numbers per (scene, sampler, budget), mean ± std over seeds, and
+  the failed runs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from neus_l0.atomic import atomic_path, atomic_write_text
+from neus_l0.bench.results import read_results
+
+#: Line colours per sampler (others cycle through matplotlib's defaults).
+COLORS = {"hvs": "tab:blue", "l0": "tab:red", "l0-inverse": "tab:green",
+          "l0-linear": "tab:purple"}
+
+
+def _color(sampler: str, i: int) -> str:
+    return COLORS.get(sampler, f"C{i % 10}")
+
+
+def _done(rows: list[dict]) -> list[dict]:
+    return [r for r in rows if r["status"] == "done"]
+
+
+def _groups(rows: list[dict]) -> dict:
+    """{scene: {sampler: {budget: [rows]}}} of done rows."""
+    out: dict = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
+    for r in _done(rows):
+        out[r["scene"]][r["sampler"]][r["budget_s"]].append(r)
+    return out
+
+
+def _save(fig, path: Path) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
+    return path
+
+
+def _finite(values) -> np.ndarray:
+    a = np.array([v for v in values if v is not None], dtype=float)
+    return a[np.isfinite(a)]
+
+
+def plot_metric_vs_time(rows: list[dict], metric: str, ylabel: str, path: Path) -> Path:
+    """`metric` against the budget: a panel per scene, a line per sampler (mean, min..max)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = _groups(rows)
+    scenes = sorted(groups) or ["(no finished runs)"]
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4.6 * len(scenes), 3.6), squeeze=False)
+    for ax, scene in zip(axes[0], scenes):
+        for i, sampler in enumerate(sorted(groups.get(scene, {}))):
+            xs, mean, lo, hi = [], [], [], []
+            for budget in sorted(groups[scene][sampler]):
+                v = _finite(r[metric] for r in groups[scene][sampler][budget])
+                if len(v):
+                    xs.append(budget)
+                    mean.append(v.mean())
+                    lo.append(v.min())
+                    hi.append(v.max())
+            if not xs:
+                continue
+            c = _color(sampler, i)
+            n = max(len(b) for b in groups[scene][sampler].values())
+            ax.plot(xs, mean, "o-", color=c, label=f"{sampler} ({n} seed{'s' * (n > 1)})")
+            ax.fill_between(xs, lo, hi, color=c, alpha=0.2, linewidth=0)
+        ax.set_title(scene)
+        ax.set_xlabel("training budget (s, wall-clock)")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
+    fig.tight_layout()
+    path = _save(fig, path)
+    plt.close(fig)
+    return path
+
+
+def read_sample_distance(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(iterations, sample_dist) logged in ``run_dir/metrics.jsonl`` (empty if none)."""
+    its, vals = [], []
+    path = Path(run_dir) / "metrics.jsonl"
+    if path.is_file():
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                m = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            v = m.get("sample_dist")
+            if v is not None and math.isfinite(v):
+                its.append(m["iter"])
+                vals.append(v)
+    return np.array(its), np.array(vals)
+
+
+def plot_sample_distance(out_dir: Path, rows: list[dict], path: Path) -> Path:
+    """Fine-sample distance to the surface against iterations (each sampler's longest runs)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = _groups(rows)
+    scenes = sorted(groups) or ["(no finished runs)"]
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4.6 * len(scenes), 3.6), squeeze=False)
+    for ax, scene in zip(axes[0], scenes):
+        for i, sampler in enumerate(sorted(groups.get(scene, {}))):
+            longest = max(groups[scene][sampler])
+            for j, r in enumerate(sorted(groups[scene][sampler][longest],
+                                         key=lambda r: r["seed"])):
+                its, vals = read_sample_distance(out_dir / r["run_dir"])
+                if len(its):
+                    ax.plot(its, vals, color=_color(sampler, i), alpha=0.9 if j == 0 else 0.5,
+                            label=f"{sampler} ({longest:g} s)" if j == 0 else None)
+        ax.set_title(scene)
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("mean distance of fine samples\nto the surface (world units)")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
+    fig.tight_layout()
+    path = _save(fig, path)
+    plt.close(fig)
+    return path
+
+
+def _fmt(values, digits: int = 3) -> str:
+    v = _finite(values)
+    if not len(v):
+        return "–"
+    if len(v) == 1:
+        return f"{v[0]:.{digits}g}"
+    return f"{v.mean():.{digits}g} ± {v.std(ddof=1):.2g}"
+
+
+def results_table(rows: list[dict]) -> str:
+    """Markdown table of the final numbers (mean ± std over seeds) and the failed runs."""
+    cols = [("iterations", "iterations", 4), ("its_per_s", "it/s", 3),
+            ("accuracy", "accuracy", 3), ("completeness", "completeness", 3),
+            ("overall", "Chamfer overall", 3), ("psnr_heldout", "PSNR held-out (dB)", 3),
+            ("peak_mem_mb", "peak mem (MB)", 4), ("sample_dist_final", "sample dist", 3)]
+    lines = ["| scene | sampler | budget (s) | seeds | " + " | ".join(c[1] for c in cols) + " |",
+             "|---" * (4 + len(cols)) + "|"]
+    groups = _groups(rows)
+    for scene in sorted(groups):
+        for sampler in sorted(groups[scene]):
+            for budget in sorted(groups[scene][sampler]):
+                rs = groups[scene][sampler][budget]
+                cells = [_fmt((r[k] for r in rs), d) for k, _, d in cols]
+                lines.append(f"| {scene} | {sampler} | {budget:g} | {len(rs)} | "
+                             + " | ".join(cells) + " |")
+    text = "\n".join(lines) + "\n"
+    text += ("\nChamfer distances and sample distances in world units (mean ± sample std over "
+             "seeds); PSNR over the foreground of the held-out views.\n")
+    failed = [r for r in rows if r["status"] != "done"]
+    if failed:
+        text += "\nFailed runs:\n\n"
+        text += "".join(f"- `{r['run_dir']}`: {r['error']}\n" for r in failed)
+    return text
+
+
+def write_plots(out_dir: str | Path, rows: list[dict] | None = None) -> list[Path]:
+    """Write every figure and table.md into ``out_dir/plots/``; return their paths."""
+    out_dir = Path(out_dir)
+    rows = read_results(out_dir) if rows is None else rows
+    plots = out_dir / "plots"
+    plots.mkdir(parents=True, exist_ok=True)
+    written = [
+        plot_metric_vs_time(rows, "overall", "Chamfer overall (world units)",
+                            plots / "chamfer_vs_time.png"),
+        plot_metric_vs_time(rows, "psnr_heldout", "held-out PSNR (dB)",
+                            plots / "psnr_vs_time.png"),
+        plot_sample_distance(out_dir, rows, plots / "sample_distance.png"),
+        atomic_write_text(plots / "table.md", results_table(rows)),
+    ]
+    return written

@@ -1,0 +1,325 @@
+"""One benchmark run, in its own process: train -> mesh -> Chamfer -> held-out PSNR.
+
+`python -m neus_l0.bench.runner RUN_DIR/spec.json` executes the spec (a JSON object, see
+`RunSpec`) and writes into RUN_DIR, besides the training run's own files (config.yaml,
+checkpoints/, metrics.jsonl, run.json):
+
+* ``mesh.ply``: the final mesh in world units;
+* ``eval.json``: the Chamfer report of `neus_l0.evaluation.score.score_mesh`, the held-out
+  PSNR per view, memory, timings and the final sample distance;
+* ``status.json``: ``{"status": "done" | "failed", "row": {...}}``, the run's results row
+  (see `neus_l0.bench.results.COLUMNS`), written last.
+
+A process per run gives per-run peak memory (``ru_maxrss`` of the process itself, or
+``torch.cuda.max_memory_allocated`` on a GPU) and isolates crashes: the sweep records a run
+whose process dies without a status.json as failed, with its exit code and the last line of
+``log.txt``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import resource
+import subprocess
+import sys
+import time
+import traceback
+from pathlib import Path
+
+from neus_l0.atomic import atomic_write_json
+from neus_l0.bench.results import make_row
+
+#: Settings every bench run gets before the user's overrides: no validation renders and a
+#: checkpoint only at the end (both would count against the budget).
+BENCH_OVERRIDES = ("train.val_every=0", "train.save_every=0")
+
+
+@dataclasses.dataclass
+class RunSpec:
+    """Everything one run needs (JSON-serialisable).
+
+    Attributes:
+        name: run folder name, ``<scene>__<sampler>__<budget>s__seed<seed>``.
+        scene: scene name (the results' ``scene`` column).
+        scene_dir: absolute path of the scene folder.
+        sampler: up-sampling draw (`neus_l0.config.SAMPLERS`).
+        budget_s: wall-clock training budget (``train.max_seconds``).
+        seed: ``train.seed`` (network init and ray draws).
+        out_dir: the sweep folder DIR (absolute); the run folder is ``DIR/runs/<name>``.
+        conf: config name or path (what the user named; informative when `config` is set).
+        overrides: the user's ``key=value`` overrides (before the run's own).
+        config: the resolved base config (`neus_l0.config.to_dict` of `conf` + `overrides`
+            + the bench's own settings), fixed by the sweep when it starts so that every run
+            uses the same config even if the YAML file changes meanwhile; None: resolve
+            `conf` and `overrides` in the run's process.
+        device: ``cpu`` or ``cuda``.
+        threads: torch CPU threads in the run's process (None: torch's default).
+        holdout: hold out every K-th view (0: none; see `neus_l0.bench.holdout`).
+        resolution: marching-cubes resolution.
+        eval_density: Chamfer sampling density and thinning radius (world units).
+        sample_rays: rays of the sample-distance hook.
+    """
+
+    name: str
+    scene: str
+    scene_dir: str
+    sampler: str
+    budget_s: float
+    seed: int
+    out_dir: str
+    conf: str = "wmask"
+    overrides: list[str] = dataclasses.field(default_factory=list)
+    device: str = "cpu"
+    threads: int | None = None
+    holdout: int = 8
+    resolution: int = 256
+    eval_density: float = 0.2
+    sample_rays: int = 256
+    config: dict | None = None
+
+    @property
+    def run_dir(self) -> Path:
+        return Path(self.out_dir) / "runs" / self.name
+
+    def run_overrides(self) -> list[str]:
+        """The bench's settings, the user's overrides, then the run's own (which win).
+
+        Validation images are switched off and checkpoints are written only at the end,
+        because both would count against the budget.
+        """
+        return [*BENCH_OVERRIDES, *self.overrides, *self.own_overrides()]
+
+    def own_overrides(self) -> list[str]:
+        """What differs between the runs of a sweep: sampler, seed, budget."""
+        return [f"sampler={self.sampler}", f"train.seed={self.seed}",
+                f"train.max_seconds={self.budget_s:g}"]
+
+    def load_config(self):
+        """The run's `neus_l0.config.Config` (raises `ConfigError` for a bad one)."""
+        import copy
+
+        from neus_l0.config import config_from_dict, load_config
+
+        if self.config is None:
+            return load_config(self.conf, self.run_overrides())
+        data = copy.deepcopy(self.config)
+        data["sampler"] = self.sampler
+        data.setdefault("train", {}).update(seed=self.seed, max_seconds=self.budget_s)
+        return config_from_dict(data)
+
+    def base_row(self) -> dict:
+        return {"scene": self.scene, "sampler": self.sampler, "budget_s": self.budget_s,
+                "seed": self.seed, "run_dir": f"runs/{self.name}"}
+
+
+def heldout_psnr(model, scene, views: list[int], cfg, iteration: int) -> list[float]:
+    """PSNR of the rendered held-out `views` against their images, at the validation downscale.
+
+    Rendered as `neus_l0.train.validation_image` does (every ``cfg.train.val_downscale``-th
+    pixel, no jitter). With masks, the error is averaged over foreground pixels only (the
+    no-background model renders black where the images show the backdrop); without masks,
+    over the whole image.
+
+    Returns:
+        one PSNR (dB) per view.
+    """
+    import torch
+
+    from neus_l0.rendering import render_image
+    from neus_l0.schedule import cos_anneal_ratio
+    from neus_l0.train import validation_views
+
+    ds = max(1, cfg.train.val_downscale)
+    out = []
+    with torch.no_grad():
+        for v in views:
+            o, d, rgb = validation_views(scene, v, ds)
+            img = render_image(model, o, d, cfg.render, cfg.sampler,
+                               cos_anneal_ratio(iteration, cfg.train.anneal_end))["color"]
+            err = ((img.clamp(0, 1) - rgb) ** 2).mean(-1)  # (h, w)
+            if scene.has_masks:
+                fg = scene.masks[v, ::ds, ::ds] > 0.5
+                err = err[fg] if bool(fg.any()) else err
+            mse = float(err.mean())
+            out.append(-10.0 * math.log10(max(mse, 1e-10)))
+    return out
+
+
+def warm_up_torch() -> None:
+    """Pay torch's one-off lazy imports before the budget starts.
+
+    The first `torch.optim.Adam` imports `torch._dynamo` (about 3 s on the 2-core dev
+    machine), which `neus_l0.train.train` would otherwise count against `train.max_seconds`.
+    """
+    import torch
+
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
+def execute(spec: RunSpec, progress: bool = False) -> dict:
+    """Run `spec` in this process and return its done row (raises on failure)."""
+    cfg = spec.load_config()  # a bad config fails before torch loads
+
+    import numpy as np
+    import torch
+
+    from neus_l0.bench.holdout import split_views, subset_scene
+    from neus_l0.bench.sample_distance import SampleDistanceHook, SurfaceDistance
+    from neus_l0.data.scene import load_scene
+    from neus_l0.mesh import export_mesh, extract_mesh
+    from neus_l0.train import load_trained_model, train
+
+    if spec.threads:
+        torch.set_num_threads(spec.threads)
+    run_dir = spec.run_dir
+    timings = {}
+    full = load_scene(spec.scene_dir, downscale=cfg.data.downscale, device=spec.device)
+    train_views, test_views = split_views(full.n_views, spec.holdout)
+    train_scene = subset_scene(full, train_views)
+    surface = SurfaceDistance.from_scene_dir(spec.scene_dir)
+    hook = SampleDistanceHook(surface, spec.sample_rays) if surface is not None else None
+    warm_up_torch()
+    if spec.device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+
+    result = train(train_scene, cfg, run_dir, device=spec.device, progress=progress,
+                   hooks=[hook] if hook else [])
+    timings["train_s"] = result.seconds
+    peak_rss = _peak_rss_mb()
+    peak_gpu = (torch.cuda.max_memory_allocated() / 2**20 if spec.device == "cuda" else None)
+
+    t0 = time.monotonic()
+    model, _, _ = load_trained_model(run_dir, spec.device)
+    sample_dist = None
+    if hook is not None:
+        with torch.no_grad():
+            sample_dist = hook(result.iteration, model, train_scene.to(spec.device),
+                               cfg)["sample_dist"]
+    mesh = extract_mesh(model, np.asarray(full.scale_mat), resolution=spec.resolution,
+                        clean=True, device=spec.device)
+    mesh_path = export_mesh(mesh, run_dir / "mesh.ply")
+    timings["mesh_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    score = None
+    if (Path(spec.scene_dir) / "gt_points.ply").is_file():
+        from neus_l0.evaluation.score import score_mesh
+
+        score = score_mesh(mesh_path, scene=spec.scene_dir, density=spec.eval_density,
+                           log=lambda msg: print(msg, file=sys.stderr, flush=True))
+    timings["score_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    psnrs = heldout_psnr(model, full.to(spec.device), test_views, cfg, result.iteration)
+    timings["psnr_s"] = time.monotonic() - t0
+
+    peak_mb = peak_gpu if peak_gpu is not None else peak_rss
+    row = make_row(
+        **spec.base_row(), status="done", error=None, train_seconds=result.seconds,
+        iterations=result.iteration, its_per_s=result.iteration / max(result.seconds, 1e-9),
+        accuracy=score and score["accuracy"], completeness=score and score["completeness"],
+        overall=score and score["overall"],
+        psnr_heldout=float(np.mean(psnrs)) if psnrs else None, peak_mem_mb=peak_mb,
+        sample_dist_final=sample_dist, mesh=f"runs/{spec.name}/mesh.ply")
+    atomic_write_json(run_dir / "eval.json", {
+        "row": row, "chamfer": score, "psnr_views": dict(zip(test_views, psnrs)),
+        "train_views": train_views, "heldout_views": test_views,
+        "stopped_early": result.stopped_early, "final_metrics": result.metrics,
+        "peak_rss_mb_train": peak_rss, "peak_rss_mb_total": _peak_rss_mb(),
+        "peak_gpu_mb_train": peak_gpu, "sample_dist_rays": spec.sample_rays,
+        "sample_dist_surface": surface.kind if surface is not None else None,
+        "timings": timings, "torch_threads": torch.get_num_threads(),
+        "spec": dataclasses.asdict(spec),
+    })
+    return row
+
+
+def failed_row(spec: RunSpec, error: str) -> dict:
+    """The results row of a run that failed with `error`."""
+    return make_row(**spec.base_row(), status="failed", error=error)
+
+
+def write_status(spec: RunSpec, row: dict) -> None:
+    atomic_write_json(spec.run_dir / "status.json", {"status": row["status"], "row": row})
+
+
+def read_spec(path: str | Path) -> RunSpec:
+    return RunSpec(**json.loads(Path(path).read_text(encoding="utf-8")))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Subprocess entry point: execute the spec file, write status.json, exit 0 / 1."""
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 1:
+        print("usage: python -m neus_l0.bench.runner RUN_DIR/spec.json", file=sys.stderr)
+        return 2
+    spec = read_spec(argv[0])
+    try:
+        row = execute(spec)
+    except Exception as exc:  # recorded, never raised: the sweep goes on
+        traceback.print_exc()
+        msg = str(exc).splitlines()[0] if str(exc) else ""
+        write_status(spec, failed_row(spec, f"{type(exc).__name__}: {msg}"))
+        return 1
+    write_status(spec, row)
+    return 0
+
+
+def _last_line(path: Path) -> str:
+    try:
+        lines = [ln for ln in path.read_text(encoding="utf-8", errors="replace").splitlines()
+                 if ln.strip()]
+    except OSError:
+        return ""
+    return lines[-1] if lines else ""
+
+
+def run_in_subprocess(spec: RunSpec, timeout: float | None = None) -> dict:
+    """Execute `spec` in a fresh Python process and return its row (never raises for the run).
+
+    The run folder is emptied of an unfinished earlier attempt first; the process's output
+    goes to ``log.txt`` in the run folder.
+    """
+    import shutil
+
+    run_dir = spec.run_dir
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    run_dir.mkdir(parents=True)
+    spec_path = run_dir / "spec.json"
+    atomic_write_json(spec_path, dataclasses.asdict(spec))
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    log = run_dir / "log.txt"
+    try:
+        with open(log, "w", encoding="utf-8") as f:
+            proc = subprocess.run([sys.executable, "-m", "neus_l0.bench.runner", str(spec_path)],
+                                  stdout=f, stderr=subprocess.STDOUT, env=env, timeout=timeout)
+        rc = proc.returncode
+    except subprocess.TimeoutExpired:
+        rc = None
+    status = run_dir / "status.json"
+    if status.is_file():
+        try:
+            return make_row(**json.loads(status.read_text(encoding="utf-8"))["row"])
+        except (OSError, json.JSONDecodeError, KeyError, TypeError):
+            pass
+    if rc is None:
+        why = f"timed out after {timeout:g} s"
+    elif rc < 0:
+        why = f"killed by signal {-rc}"
+    else:
+        why = f"exit code {rc}"
+    row = failed_row(spec, f"run process {why}; {_last_line(log)}")
+    write_status(spec, row)
+    return row
+
+
+if __name__ == "__main__":
+    sys.exit(main())
