@@ -245,7 +245,9 @@ class TrainConfig:
     keep_checkpoints: int = 3
     """How many of the newest checkpoints to keep."""
     max_seconds: float = 0.0
-    """Wall-clock budget: stop and checkpoint after this many seconds (0: no budget)."""
+    """Wall-clock budget of the training loop (steps, logging, validation, checkpoints; not
+    the setup before it nor the time of training hooks): stop and checkpoint after this many
+    seconds (0: no budget)."""
     amp: str = "off"
     """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
     scaler and fused Adam); ignored on the CPU."""
