@@ -14,6 +14,7 @@ from neus_l0.fields.color import ColorNetwork
 from neus_l0.fields.encodings import (
     Encoding,
     FrequencyEncoding,
+    HashGridEncoding,
     IdentityEncoding,
     build_encoding,
 )
@@ -21,7 +22,8 @@ from neus_l0.fields.sdf import SDFNetwork, sdf_and_gradient
 from neus_l0.fields.variance import SingleVariance
 
 __all__ = [
-    "BackgroundNeRF", "ColorNetwork", "Encoding", "FrequencyEncoding", "IdentityEncoding",
+    "BackgroundNeRF", "ColorNetwork", "Encoding", "FrequencyEncoding", "HashGridEncoding",
+    "IdentityEncoding",
     "NeuSModel", "SDFNetwork", "SingleVariance", "build_encoding", "build_model",
     "inverse_sphere", "sdf_and_gradient",
 ]
