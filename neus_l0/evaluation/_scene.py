@@ -34,18 +34,8 @@ def read_world_mats(scene_dir: str | Path) -> np.ndarray:
         path = root / "cameras.npz"
     if not path.is_file():
         raise NeusL0Error(f"{path}: file not found")
-    try:
-        with np.load(path) as data:
-            mats = {int(m.group(1)): np.asarray(data[k], dtype=np.float64)
-                    for k in data.files if (m := _WORLD_MAT.match(k))}
-    except Exception as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise NeusL0Error(f"{path}: cannot read ({msg})") from None
-    if not mats:
-        raise NeusL0Error(f"{path}: no world_mat_i keys")
+    mats = read_indexed(path, _WORLD_MAT, np.float64, "world_mat_i")
     n = len(mats)
-    if sorted(mats) != list(range(n)):
-        raise NeusL0Error(f"{path}: world_mat_i indices are not 0..{n - 1}")
     out = np.empty((n, 3, 4))
     for i in range(n):
         m = mats[i]
@@ -129,3 +119,33 @@ def project(points: np.ndarray, p_n: np.ndarray) -> tuple[np.ndarray, np.ndarray
     col[front] = np.rint(np.clip(x, -big, big)).astype(np.int64)
     row[front] = np.rint(np.clip(y, -big, big)).astype(np.int64)
     return col, row, z
+
+
+def read_indexed(path: Path, pattern: re.Pattern, dtype: type, what: str) -> dict:
+    """Arrays stored as ``name_i`` keys of an npz file, checked to be numbered 0..n-1.
+
+    Args:
+        path: the .npz file (must exist).
+        pattern: regex whose group 1 is the index i.
+        dtype: NumPy dtype of the returned arrays.
+        what: the key family's name for error messages (e.g. ``world_mat_i``).
+
+    Returns:
+        {i: array} for i in 0..n-1.
+
+    Raises:
+        NeusL0Error: unreadable file, no matching keys, or gaps in the numbering.
+    """
+    try:
+        with np.load(path) as data:
+            arrays = {int(m.group(1)): np.asarray(data[k], dtype=dtype)
+                      for k in data.files if (m := pattern.match(k))}
+    except Exception as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise NeusL0Error(f"{path}: cannot read ({msg})") from None
+    if not arrays:
+        raise NeusL0Error(f"{path}: no {what} keys")
+    n = len(arrays)
+    if sorted(arrays) != list(range(n)):
+        raise NeusL0Error(f"{path}: {what} indices are not 0..{n - 1}")
+    return arrays

@@ -34,7 +34,12 @@ from pathlib import Path
 import numpy as np
 
 from neus_l0.errors import NeusL0Error
-from neus_l0.evaluation._scene import depth_projections, project, read_world_mats
+from neus_l0.evaluation._scene import (
+    depth_projections,
+    project,
+    read_indexed,
+    read_world_mats,
+)
 from neus_l0.evaluation.chamfer import (
     ChamferResult,
     chamfer_from_distances,
@@ -90,18 +95,8 @@ def load_depths(path: str | os.PathLike) -> list[np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise NeusL0Error(f"{path}: file not found")
-    try:
-        with np.load(path) as data:
-            maps = {int(m.group(1)): np.asarray(data[k], dtype=np.float32)
-                    for k in data.files if (m := _DEPTH.match(k))}
-    except Exception as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise NeusL0Error(f"{path}: cannot read ({msg})") from None
-    if not maps:
-        raise NeusL0Error(f"{path}: no depth_i keys")
+    maps = read_indexed(path, _DEPTH, np.float32, "depth_i")
     n = len(maps)
-    if sorted(maps) != list(range(n)):
-        raise NeusL0Error(f"{path}: depth_i indices are not 0..{n - 1}")
     for i in range(n):
         if maps[i].ndim != 2:
             raise NeusL0Error(f"{path}: depth_{i} must be 2-D, got shape {maps[i].shape}")
