@@ -43,6 +43,31 @@ def _groups(rows: list[dict]) -> dict:
     return out
 
 
+def _scene_panels(groups: dict) -> tuple:
+    """A figure with one panel per scene: (figure, [(axes, scene), ...])."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted(groups) or ["(no finished runs)"]
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4.6 * len(scenes), 3.6), squeeze=False)
+    return fig, list(zip(axes[0], scenes))
+
+
+def _finish_panels(fig, panels: list, path: Path) -> Path:
+    """Legends where there are lines, then write the figure atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    for ax, _ in panels:
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend()
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return path
+
+
 def _save(fig, path: Path) -> Path:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110, bbox_inches="tight")
@@ -56,15 +81,9 @@ def _finite(values) -> np.ndarray:
 
 def plot_metric_vs_time(rows: list[dict], metric: str, ylabel: str, path: Path) -> Path:
     """`metric` against the budget: a panel per scene, a line per sampler (mean, min..max)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     groups = _groups(rows)
-    scenes = sorted(groups) or ["(no finished runs)"]
-    fig, axes = plt.subplots(1, len(scenes), figsize=(4.6 * len(scenes), 3.6), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
+    fig, panels = _scene_panels(groups)
+    for ax, scene in panels:
         for i, sampler in enumerate(sorted(groups.get(scene, {}))):
             xs, mean, lo, hi = [], [], [], []
             for budget in sorted(groups[scene][sampler]):
@@ -84,12 +103,7 @@ def plot_metric_vs_time(rows: list[dict], metric: str, ylabel: str, path: Path) 
         ax.set_xlabel("training budget (s, wall-clock)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend()
-    fig.tight_layout()
-    path = _save(fig, path)
-    plt.close(fig)
-    return path
+    return _finish_panels(fig, panels, path)
 
 
 def read_sample_distance(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -111,15 +125,9 @@ def read_sample_distance(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def plot_sample_distance(out_dir: Path, rows: list[dict], path: Path) -> Path:
     """Fine-sample distance to the surface against iterations (each sampler's longest runs)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     groups = _groups(rows)
-    scenes = sorted(groups) or ["(no finished runs)"]
-    fig, axes = plt.subplots(1, len(scenes), figsize=(4.6 * len(scenes), 3.6), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
+    fig, panels = _scene_panels(groups)
+    for ax, scene in panels:
         for i, sampler in enumerate(sorted(groups.get(scene, {}))):
             longest = max(groups[scene][sampler])
             for j, r in enumerate(sorted(groups[scene][sampler][longest],
@@ -133,12 +141,7 @@ def plot_sample_distance(out_dir: Path, rows: list[dict], path: Path) -> Path:
         ax.set_ylabel("mean distance of fine samples\nto the surface (world units)")
         ax.set_yscale("log")
         ax.grid(alpha=0.3, which="both")
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend()
-    fig.tight_layout()
-    path = _save(fig, path)
-    plt.close(fig)
-    return path
+    return _finish_panels(fig, panels, path)
 
 
 def _fmt(values, digits: int = 3) -> str:

@@ -173,6 +173,12 @@ def _torch_threads(n: int | None):
         torch.set_num_threads(before)
 
 
+def _save_npz(path: Path, arrays: dict, compressed: bool) -> None:
+    """Write arrays to an .npz file and close it before the atomic rename."""
+    with open(path, "wb") as f:
+        (np.savez_compressed if compressed else np.savez)(f, **arrays)
+
+
 def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
                height: int = 300, seed: int = 0, *, spp: int = 2,
                gt_voxel: float | None = None, point_spacing: float = 0.5,
@@ -290,9 +296,9 @@ def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spa
     for i in range(views):
         cams[f"world_mat_{i}"] = world_mats[i]
         cams[f"scale_mat_{i}"] = scale_mat
-    atomic_write(out / "cameras_sphere.npz", lambda p: np.savez(open(p, "wb"), **cams))
-    atomic_write(out / "gt_depth.npz", lambda p: np.savez_compressed(
-        open(p, "wb"), **{f"depth_{i}": depth[i] for i in range(views)}))
+    depths = {f"depth_{i}": depth[i] for i in range(views)}
+    atomic_write(out / "cameras_sphere.npz", lambda p: _save_npz(p, cams, compressed=False))
+    atomic_write(out / "gt_depth.npz", lambda p: _save_npz(p, depths, compressed=True))
     write_ply(out / "gt_mesh.ply", np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces))
     write_ply(out / "gt_points.ply", pts)
     atomic_write_json(out / "features.json", {"features": features})
