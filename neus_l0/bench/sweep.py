@@ -180,10 +180,12 @@ def run_sweep(out_dir: str | Path, scenes: Sequence[str], samplers: Sequence[str
         raise NeusL0Error(f"--scenes: two scenes share a name ({', '.join(names)})")
 
     specs, skipped = [], []
+    # Samplers innermost: the runs that are compared with each other run back to back and
+    # so see the same machine load (which moves wall-clock budgets more than the sampler).
     for scene, folder in resolved:
-        for sampler in samplers:
+        for seed in seeds:
             for budget in budgets:
-                for seed in seeds:
+                for sampler in samplers:
                     name = run_name(scene, sampler, float(budget), int(seed))
                     spec = RunSpec(name=name, scene=scene, scene_dir=str(folder),
                                    sampler=sampler, budget_s=float(budget), seed=int(seed),
