@@ -113,7 +113,8 @@ def test_other_settings_on_the_same_folder_are_refused(sweep):
 def test_plots_are_written(sweep):
     out, _ = sweep
     assert main(["bench", "--plot-only", str(out)]) == 0
-    for name in ("chamfer_vs_time.png", "psnr_vs_time.png", "sample_distance.png"):
+    for name in ("chamfer_vs_time.png", "psnr_vs_time.png", "chamfer_vs_iterations.png",
+                 "sample_distance.png"):
         data = (out / "plots" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 1000
     table = (out / "plots" / "table.md").read_text()

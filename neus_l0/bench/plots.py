@@ -1,8 +1,12 @@
 """Figures and the table of a sweep folder, written into ``DIR/plots/``.
 
-* ``chamfer_vs_time.png``: overall Chamfer distance against the wall-clock budget, a panel
-  per scene, a line per sampler (mean over seeds, band = min..max over seeds);
-* ``psnr_vs_time.png``: held-out PSNR against the budget, drawn the same way;
+* ``chamfer_vs_time.png``: overall Chamfer distance against the measured training time, a
+  panel per scene, a line per sampler through one point per budget (mean over seeds of the
+  time and of the Chamfer; vertical band = min..max Chamfer over seeds, horizontal bar =
+  min..max time: a run that finishes `train.iters` early stops before its budget);
+* ``psnr_vs_time.png``: held-out PSNR against the measured training time, drawn the same way;
+* ``chamfer_vs_iterations.png``: overall Chamfer against the iterations each run reached, a
+  point per run: the iteration-matched view, which machine load does not move;
 * ``sample_distance.png``: mean distance of the fine samples to the true surface against
   the iteration (``sample_dist`` of metrics.jsonl), a panel per scene, one line per seed of
   each sampler's longest run;
@@ -80,27 +84,62 @@ def _finite(values) -> np.ndarray:
 
 
 def plot_metric_vs_time(rows: list[dict], metric: str, ylabel: str, path: Path) -> Path:
-    """`metric` against the budget: a panel per scene, a line per sampler (mean, min..max)."""
+    """`metric` against the measured training time: a panel per scene, a line per sampler.
+
+    One point per budget: x = mean ``train_seconds`` over seeds (bar: min..max), y = mean
+    `metric` (band: min..max). Rows without a measured time fall back to their budget.
+    """
     groups = _groups(rows)
     fig, panels = _scene_panels(groups)
     for ax, scene in panels:
         for i, sampler in enumerate(sorted(groups.get(scene, {}))):
-            xs, mean, lo, hi = [], [], [], []
+            pts = []  # (x mean, x min, x max, y mean, y min, y max)
             for budget in sorted(groups[scene][sampler]):
-                v = _finite(r[metric] for r in groups[scene][sampler][budget])
-                if len(v):
-                    xs.append(budget)
-                    mean.append(v.mean())
-                    lo.append(v.min())
-                    hi.append(v.max())
-            if not xs:
+                rs = [r for r in groups[scene][sampler][budget]
+                      if r[metric] is not None and math.isfinite(r[metric])]
+                if not rs:
+                    continue
+                t = np.array([r["train_seconds"] if r.get("train_seconds") is not None
+                              else budget for r in rs], dtype=float)
+                v = np.array([r[metric] for r in rs], dtype=float)
+                pts.append((t.mean(), t.min(), t.max(), v.mean(), v.min(), v.max()))
+            if not pts:
                 continue
+            p = np.array(pts)
             c = _color(sampler, i)
             n = max(len(b) for b in groups[scene][sampler].values())
-            ax.plot(xs, mean, "o-", color=c, label=f"{sampler} ({n} seed{'s' * (n > 1)})")
-            ax.fill_between(xs, lo, hi, color=c, alpha=0.2, linewidth=0)
+            ax.errorbar(p[:, 0], p[:, 3], xerr=[p[:, 0] - p[:, 1], p[:, 2] - p[:, 0]],
+                        fmt="o-", color=c, capsize=2,
+                        label=f"{sampler} ({n} seed{'s' * (n > 1)})")
+            ax.fill_between(p[:, 0], p[:, 4], p[:, 5], color=c, alpha=0.2, linewidth=0)
         ax.set_title(scene)
-        ax.set_xlabel("training budget (s, wall-clock)")
+        ax.set_xlabel("training time (s, wall-clock, measured)")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    return _finish_panels(fig, panels, path)
+
+
+def plot_metric_vs_iterations(rows: list[dict], metric: str, ylabel: str, path: Path) -> Path:
+    """`metric` against the iterations each run reached: a point per run, a colour per sampler.
+
+    The iteration-matched comparison: two samplers at the same iteration count have had the
+    same schedule, whatever the machine load did to their wall-clock.
+    """
+    groups = _groups(rows)
+    fig, panels = _scene_panels(groups)
+    for ax, scene in panels:
+        for i, sampler in enumerate(sorted(groups.get(scene, {}))):
+            rs = [r for b in groups[scene][sampler].values() for r in b
+                  if r[metric] is not None and math.isfinite(r[metric])
+                  and r.get("iterations") is not None]
+            if not rs:
+                continue
+            rs.sort(key=lambda r: r["iterations"])
+            c = _color(sampler, i)
+            ax.plot([r["iterations"] for r in rs], [r[metric] for r in rs], "o", color=c,
+                    alpha=0.8, label=f"{sampler} ({len(rs)} run{'s' * (len(rs) > 1)})")
+        ax.set_title(scene)
+        ax.set_xlabel("iterations reached")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     return _finish_panels(fig, panels, path)
@@ -190,6 +229,8 @@ def write_plots(out_dir: str | Path, rows: list[dict] | None = None) -> list[Pat
                             plots / "chamfer_vs_time.png"),
         plot_metric_vs_time(rows, "psnr_heldout", "held-out PSNR (dB)",
                             plots / "psnr_vs_time.png"),
+        plot_metric_vs_iterations(rows, "overall", "Chamfer overall (world units)",
+                                  plots / "chamfer_vs_iterations.png"),
         plot_sample_distance(out_dir, rows, plots / "sample_distance.png"),
         atomic_write_text(plots / "table.md", results_table(rows)),
     ]
