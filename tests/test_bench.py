@@ -270,7 +270,19 @@ def test_sample_distance_hook_is_zero_for_samples_on_the_surface(monkeypatch):
     z = _sphere_hits(o.double(), d.double(), 0.5).repeat(1, 4) - 0.1
     dist = surface(fine_points_world(o.double(), d.double(), z, scene.scale_mat))
     assert 0.5 < dist.mean() <= 4.0 + 1e-9
-    assert hook(10, None, scene, cfg)["sample_dist"] == pytest.approx(dist.mean(), rel=1e-4)
+    assert hook(10, None, scene, cfg) == {}  # not due again before iteration 15
+    assert hook(10, None, scene, cfg, force=True)["sample_dist"] == pytest.approx(
+        dist.mean(), rel=1e-4)
+
+
+def test_sample_distance_is_measured_at_geometric_iterations():
+    hook = SampleDistanceHook(surface=None, growth=1.5)
+    measured = [it for it in range(50, 5001, 50) if hook.due(it)]
+    assert measured == [50, 100, 150, 250, 400, 600, 900, 1350, 2050, 3100, 4650]
+    every = SampleDistanceHook(surface=None, growth=1.0)
+    assert all(every.due(it) for it in range(50, 501, 50))
+    with pytest.raises(ValueError):
+        SampleDistanceHook(surface=None, growth=0.5)
 
 
 def test_fine_points_world_uses_the_scale_mat():
