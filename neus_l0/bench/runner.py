@@ -201,7 +201,7 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
     if hook is not None:
         with torch.no_grad():
             sample_dist = hook(result.iteration, model, train_scene.to(spec.device),
-                               cfg)["sample_dist"]
+                               cfg, force=True)["sample_dist"]
     mesh = extract_mesh(model, np.asarray(full.scale_mat), resolution=spec.resolution,
                         clean=True, device=spec.device)
     mesh_path = export_mesh(mesh, run_dir / "mesh.ply")
