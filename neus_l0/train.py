@@ -5,7 +5,8 @@
 * ``config.yaml``: the resolved config;
 * ``metrics.jsonl``: one JSON line every ``train.log_every`` iterations (means over them);
 * ``validation/NNNNNNN_vVVV.png``: ground truth | colour | normals of a downscaled view;
-* ``checkpoints/ckpt_NNNNNNN.pt``: atomic checkpoints (see `neus_l0.checkpoint`).
+* ``checkpoints/ckpt_NNNNNNN.pt``: atomic checkpoints (see `neus_l0.checkpoint`), among
+  them the snapshots that ``train(..., snapshots=[...])`` asks for at given loop times.
 
 Randomness: the networks are initialised from ``train.seed`` (without touching torch's
 global generator), and every random draw of the loop (ray batches, sample jitter) comes from
@@ -32,6 +33,7 @@ from neus_l0.atomic import atomic_write, atomic_write_json, atomic_write_text
 from neus_l0.checkpoint import (
     checkpoint_path,
     latest_checkpoint,
+    list_checkpoints,
     load_checkpoint,
     save_checkpoint,
 )
@@ -60,8 +62,11 @@ class TrainResult:
         iteration: iterations done in total (including before a resume).
         checkpoint: the last checkpoint written.
         metrics: the last logged metrics (empty if none were logged).
-        seconds: wall-clock time of this call, less the time spent in hooks.
+        seconds: wall-clock time of this call, less the time spent in hooks and in
+            writing snapshots.
         stopped_early: whether `train.max_seconds` ended the run before `train.iters`.
+        snapshots: one ``(mark, iteration, checkpoint)`` per snapshot mark of this call, in
+            mark order (marks served by the same checkpoint repeat it).
     """
 
     run_dir: Path
@@ -70,6 +75,7 @@ class TrainResult:
     metrics: dict
     seconds: float
     stopped_early: bool
+    snapshots: list[tuple[float, int, Path]] = dataclasses.field(default_factory=list)
 
 
 def make_model(cfg: Config, device: str | torch.device = "cpu") -> NeuSModel:
@@ -252,6 +258,30 @@ def _truncate_metrics(path: Path, iteration: int) -> None:
     atomic_write_text(path, "".join(k + "\n" for k in keep))
 
 
+def _snapshot_checkpoints(path: Path) -> set[Path]:
+    """Checkpoints of the snapshot lines already in ``metrics.jsonl`` (before a resume)."""
+    if not path.exists():
+        return set()
+    found = set()
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            m = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if "snapshot_s" in m and "iter" in m:
+            found.add(checkpoint_path(path.parent, int(m["iter"])))
+    return found
+
+
+def _prune_checkpoints(run_dir: Path, keep: int, protected: set[Path]) -> None:
+    """Delete all but the newest `keep` checkpoints that are not in `protected`."""
+    if keep <= 0:
+        return
+    others = [p for p in list_checkpoints(run_dir) if p not in protected]
+    for old in others[:-keep]:
+        old.unlink(missing_ok=True)
+
+
 def _check_scene(scene: Scene, cfg: Config) -> None:
     if cfg.train.mask_weight > 0 and not scene.has_masks:
         raise ConfigError(f"{scene.root}: train.mask_weight={cfg.train.mask_weight} but the "
@@ -260,7 +290,8 @@ def _check_scene(scene: Scene, cfg: Config) -> None:
 
 def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.device = "cpu",
           resume: bool = False, progress: bool = True,
-          stop_at: int | None = None, hooks: Sequence[Hook] = ()) -> TrainResult:
+          stop_at: int | None = None, hooks: Sequence[Hook] = (),
+          snapshots: Sequence[float] = ()) -> TrainResult:
     """Train NeuS on `scene` and write the run folder.
 
     Args:
@@ -279,17 +310,30 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
             no gradient) each time metrics are logged; their numbers join that line of
             ``metrics.jsonl``. Their time is not counted in ``elapsed`` nor against
             ``train.max_seconds``, so budgets stay comparable with and without them.
+        snapshots: loop-time marks in seconds (the clock of ``train.max_seconds``, restarted
+            by a resume). When the loop time first reaches a mark, a checkpoint is written
+            and ``{"snapshot_s": mark, "iter": iteration, "elapsed": loop time}`` appended to
+            ``metrics.jsonl``; a mark the run does not reach is served by the final
+            checkpoint (and recorded the same way). Writing a snapshot is not counted in
+            ``elapsed`` nor against ``train.max_seconds`` (on CUDA the queued work is waited
+            for first, and counted). Snapshot checkpoints are exempt from
+            ``train.keep_checkpoints``. The training itself is unchanged (resume stays
+            exact).
 
     Returns:
         a `TrainResult`.
 
     Raises:
-        NeusL0Error: an existing run without `resume`, a NaN checkpoint, or divergence.
+        NeusL0Error: an existing run without `resume`, a NaN checkpoint, divergence, or
+            a negative or non-finite snapshot mark.
     """
     from tqdm import tqdm
 
     run_dir = Path(run_dir)
     device = torch.device(device)
+    marks = sorted(float(m) for m in snapshots)
+    if not all(math.isfinite(m) and m >= 0 for m in marks):
+        raise NeusL0Error(f"snapshots {list(snapshots)}: marks must be finite seconds >= 0")
     ckpt_state = None
     if resume:
         last = latest_checkpoint(run_dir)
@@ -334,6 +378,8 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     })
     metrics_path = run_dir / "metrics.jsonl"
     _truncate_metrics(metrics_path, iteration)
+    protected = _snapshot_checkpoints(metrics_path) if marks else set()
+    taken: list[tuple[float, int, Path]] = []
 
     def checkpoint() -> Path:
         state = {
@@ -349,8 +395,30 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
             state["occupancy"] = occupancy.state_dict()
         if scaler.is_enabled():
             state["scaler"] = scaler.state_dict()
-        return save_checkpoint(checkpoint_path(run_dir, iteration), state,
-                               keep=cfg.train.keep_checkpoints)
+        if not marks:
+            return save_checkpoint(checkpoint_path(run_dir, iteration), state,
+                                   keep=cfg.train.keep_checkpoints)
+        path = save_checkpoint(checkpoint_path(run_dir, iteration), state, keep=0)
+        _prune_checkpoints(run_dir, cfg.train.keep_checkpoints, protected | {path})
+        return path
+
+    def snapshot(elapsed: float, final: bool) -> None:
+        """Serve every pending mark up to `elapsed` (all of them when `final`)."""
+        nonlocal last_ckpt
+        path = checkpoint_path(run_dir, iteration)
+        protected.add(path)  # before writing, so that its own pruning keeps it
+        if last_ckpt != path:
+            last_ckpt = checkpoint()
+        with open(metrics_path, "a", encoding="utf-8") as f:
+            while len(taken) < len(marks) and (final or marks[len(taken)] <= elapsed):
+                mark = marks[len(taken)]
+                taken.append((mark, iteration, path))
+                f.write(json.dumps({"snapshot_s": mark, "iter": iteration,
+                                    "elapsed": elapsed}) + "\n")
+
+    def wait_for_device() -> None:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
 
     t = cfg.train
     acc = torch.zeros(len(METRIC_NAMES), device=device)
@@ -408,16 +476,26 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
             _write_png(run_dir / "validation" / f"{iteration:07d}_v{view:03d}.png", img)
         if t.save_every and iteration % t.save_every == 0:
             last_ckpt = checkpoint()
+        if len(taken) < len(marks) and time.monotonic() - start_time >= marks[len(taken)]:
+            wait_for_device()  # the queued steps are training time
+            snap_t0 = time.monotonic()
+            snapshot(snap_t0 - start_time, final=False)
+            snap_seconds = time.monotonic() - snap_t0
+            start_time += snap_seconds  # snapshots do not count as training time either
+            log_t0 += snap_seconds
         over_time = t.max_seconds and time.monotonic() - start_time > t.max_seconds
         if (over_time or (stop_at is not None and iteration >= stop_at)) \
                 and iteration < t.iters:
             stopped_early = True
             break
     bar.close()
+    if len(taken) < len(marks):  # marks beyond the end: the final checkpoint serves them
+        wait_for_device()
+        snapshot(time.monotonic() - start_time, final=True)
     if last_ckpt is None or last_ckpt != checkpoint_path(run_dir, iteration):
         last_ckpt = checkpoint()
     return TrainResult(run_dir, iteration, last_ckpt, last_metrics,
-                       time.monotonic() - start_time, stopped_early)
+                       time.monotonic() - start_time, stopped_early, taken)
 
 
 def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",

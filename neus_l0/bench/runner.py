@@ -5,8 +5,11 @@
 checkpoints/, metrics.jsonl, run.json):
 
 * ``mesh.ply``: the final mesh in world units;
+* ``snapshots/mesh_NNNNNNN.ply``: the meshes of the snapshot checkpoints (`RunSpec.snapshots`);
 * ``eval.json``: the Chamfer report of `neus_l0.evaluation.score.score_mesh`, the held-out
-  PSNR per view, memory, timings and the final sample distance;
+  PSNR per view, memory, timings (``extract_s``: the final marching cubes alone), the final
+  sample distance, and ``curve``: Chamfer against training time, one point per snapshot
+  and the final model's last (see `execute`);
 * ``status.json``: ``{"status": "done" | "failed", "row": {...}}``, the run's results row
   (see `neus_l0.bench.results.COLUMNS`), written last.
 
@@ -61,6 +64,10 @@ class RunSpec:
         resolution: marching-cubes resolution.
         eval_density: Chamfer sampling density and thinning radius (world units).
         sample_rays: rays of the sample-distance hook.
+        snapshots: training-loop times (seconds) at which to checkpoint; each snapshot's
+            mesh is extracted and scored after training (``curve`` in eval.json).
+        label: the run's name in a comparison (e.g. an arm of `tools/bench_fast_vs_neus.py`);
+            informative only.
     """
 
     name: str
@@ -79,6 +86,8 @@ class RunSpec:
     eval_density: float = 0.2
     sample_rays: int = 256
     config: dict | None = None
+    snapshots: list[float] = dataclasses.field(default_factory=list)
+    label: str | None = None
 
     @property
     def run_dir(self) -> Path:
@@ -163,8 +172,82 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
 
 
+def curve_point(seconds: float, iteration: int, score: dict | None, mesh_s: float | None,
+                error: str | None = None) -> dict:
+    """One point of eval.json's ``curve``: a model's Chamfer at a training time."""
+    from neus_l0.bench.results import clean_number
+
+    point = {"seconds": clean_number(seconds), "iteration": int(iteration)}
+    for k in ("accuracy", "completeness", "overall"):
+        point[k] = clean_number(score[k]) if score else None
+    point["mesh_s"] = clean_number(mesh_s)
+    if error:
+        point["error"] = error
+    return point
+
+
+def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], final_iter: int,
+                    scale_mat, elapsed: dict[int, float], score_fn) -> list[dict]:
+    """Mesh and score every snapshot checkpoint except the final model's.
+
+    Args:
+        spec: the run (device, resolution).
+        snapshots: `neus_l0.train.TrainResult.snapshots`, ``(mark, iteration, checkpoint)``.
+        final_iter: the final model's iteration (its snapshot is the final point).
+        scale_mat: (4, 4) normalised -> world.
+        elapsed: loop time (s) of each snapshot iteration (metrics.jsonl's ``elapsed``).
+        score_fn: ``score_fn(mesh_path) -> report or None``.
+
+    Returns:
+        curve points in iteration order; a snapshot whose mesh cannot be made (no surface
+        yet) gets missing numbers and an ``error``.
+    """
+    import numpy as np
+
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.mesh import export_mesh, extract_mesh
+    from neus_l0.train import load_trained_model
+
+    points = []
+    seen = set()
+    for _, iteration, ckpt in snapshots:
+        if iteration == final_iter or iteration in seen:
+            continue
+        seen.add(iteration)
+        model, _, _ = load_trained_model(spec.run_dir, spec.device, checkpoint=ckpt)
+        t0 = time.monotonic()
+        try:
+            mesh = extract_mesh(model, np.asarray(scale_mat), resolution=spec.resolution,
+                                clean=True, device=spec.device)
+        except NeusL0Error as exc:
+            points.append(curve_point(elapsed[iteration], iteration, None, None, str(exc)))
+            continue
+        mesh_s = time.monotonic() - t0
+        path = export_mesh(mesh, spec.run_dir / "snapshots" / f"mesh_{iteration:07d}.ply")
+        points.append(curve_point(elapsed[iteration], iteration, score_fn(path), mesh_s))
+    return points
+
+
+def _snapshot_elapsed(run_dir: Path) -> dict[int, float]:
+    """Loop time (s) of each snapshot iteration, from the run's metrics.jsonl."""
+    out = {}
+    for line in (run_dir / "metrics.jsonl").read_text(encoding="utf-8").splitlines():
+        try:
+            m = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if "snapshot_s" in m:
+            out.setdefault(int(m["iter"]), float(m["elapsed"]))
+    return out
+
+
 def execute(spec: RunSpec, progress: bool = False) -> dict:
-    """Run `spec` in this process and return its done row (raises on failure)."""
+    """Run `spec` in this process and return its done row (raises on failure).
+
+    With `spec.snapshots`, eval.json's ``curve`` lists ``{seconds, iteration, accuracy,
+    completeness, overall, mesh_s}`` per snapshot (seconds: the loop time when it was taken;
+    mesh_s: its marching cubes) and ends with the final model (seconds: ``train_seconds``).
+    """
     cfg = spec.load_config()  # a bad config fails before torch loads
 
     import numpy as np
@@ -190,7 +273,7 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
         torch.cuda.reset_peak_memory_stats()
 
     result = train(train_scene, cfg, run_dir, device=spec.device, progress=progress,
-                   hooks=[hook] if hook else [])
+                   hooks=[hook] if hook else [], snapshots=spec.snapshots)
     timings["train_s"] = result.seconds
     peak_rss = _peak_rss_mb()
     peak_gpu = (torch.cuda.max_memory_allocated() / 2**20 if spec.device == "cuda" else None)
@@ -202,19 +285,30 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
         with torch.no_grad():
             sample_dist = hook(result.iteration, model, train_scene.to(spec.device),
                                cfg, force=True)["sample_dist"]
+    t_extract = time.monotonic()
     mesh = extract_mesh(model, np.asarray(full.scale_mat), resolution=spec.resolution,
                         clean=True, device=spec.device)
+    timings["extract_s"] = time.monotonic() - t_extract
     mesh_path = export_mesh(mesh, run_dir / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0
 
-    t0 = time.monotonic()
-    score = None
-    if (Path(spec.scene_dir) / "gt_points.ply").is_file():
+    def score_fn(path: Path) -> dict | None:
+        if not (Path(spec.scene_dir) / "gt_points.ply").is_file():
+            return None
         from neus_l0.evaluation.score import score_mesh
 
-        score = score_mesh(mesh_path, scene=spec.scene_dir, density=spec.eval_density,
-                           log=lambda msg: print(msg, file=sys.stderr, flush=True))
+        return score_mesh(path, scene=spec.scene_dir, density=spec.eval_density,
+                          log=lambda msg: print(msg, file=sys.stderr, flush=True))
+
+    t0 = time.monotonic()
+    score = score_fn(mesh_path)
     timings["score_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    curve = score_snapshots(spec, result.snapshots, result.iteration, full.scale_mat,
+                            _snapshot_elapsed(run_dir) if result.snapshots else {}, score_fn)
+    curve.append(curve_point(result.seconds, result.iteration, score, timings["extract_s"]))
+    timings["snapshots_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
     psnrs = heldout_psnr(model, full.to(spec.device), test_views, cfg, result.iteration)
@@ -227,7 +321,8 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
         accuracy=score and score["accuracy"], completeness=score and score["completeness"],
         overall=score and score["overall"],
         psnr_heldout=float(np.mean(psnrs)) if psnrs else None, peak_mem_mb=peak_mb,
-        sample_dist_final=sample_dist, mesh=f"runs/{spec.name}/mesh.ply")
+        sample_dist_final=sample_dist, mesh=f"runs/{spec.name}/mesh.ply",
+        mesh_seconds=timings["extract_s"])
     atomic_write_json(run_dir / "eval.json", {
         "row": row, "chamfer": score, "psnr_views": dict(zip(test_views, psnrs)),
         "train_views": train_views, "heldout_views": test_views,
@@ -236,7 +331,10 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
         "peak_gpu_mb_train": peak_gpu, "sample_dist_rays": spec.sample_rays,
         "sample_dist_surface": surface.kind if surface is not None else None,
         "timings": timings, "torch_threads": torch.get_num_threads(),
-        "spec": dataclasses.asdict(spec),
+        "curve": curve, "snapshots": [
+            {"mark": m, "iteration": it, "checkpoint": str(Path(p).relative_to(run_dir))}
+            for m, it, p in result.snapshots],
+        "label": spec.label, "spec": dataclasses.asdict(spec),
     })
     return row
 
