@@ -180,9 +180,19 @@ def section_to_point_weights(z: Tensor, section_weights: Tensor, placement: str 
     raise ValueError(f"unknown point-weight placement {placement!r}")
 
 
+_COMPILED: dict = {}
+
+
+def compiled_sample_l0():
+    """`sample_l0` through `torch.compile` (compiled once per process, dynamic shapes)."""
+    if "l0" not in _COMPILED:
+        _COMPILED["l0"] = torch.compile(sample_l0, dynamic=True)
+    return _COMPILED["l0"]
+
+
 def draw_fine_samples(z: Tensor, section_weights: Tensor, n_samples: int, sampler: str,
                       placement: str = "midpoint", as_density: bool = True,
-                      pad: float = 0.01) -> Tensor:
+                      pad: float = 0.01, compiled: bool = False) -> Tensor:
     """Draw one round of fine samples (deterministic, as NeuS) with the named sampler.
 
     Args:
@@ -191,6 +201,9 @@ def draw_fine_samples(z: Tensor, section_weights: Tensor, n_samples: int, sample
         sampler: one of `SAMPLERS`.
         placement, as_density: see `section_to_point_weights` (L0 samplers only).
         pad: maxblur padding of the L0 samplers.
+        compiled: draw with `compiled_sample_l0` (``l0`` and ``l0-linear`` only; same
+            result to float rounding). ``l0-inverse`` always draws eagerly: compiled, its
+            all-zero rays came out non-finite (inductor reorders its spike arithmetic).
 
     Returns:
         (B, n_samples) sorted, detached, inside the range of the nodes.
@@ -201,7 +214,8 @@ def draw_fine_samples(z: Tensor, section_weights: Tensor, n_samples: int, sample
     if kind is None:
         return sample_pdf(z, section_weights, n_samples, det=True)
     t, w = section_to_point_weights(z, section_weights, placement, as_density)
-    return sample_l0(t, w, n_samples, kind=kind, det=True, pad=pad)
+    draw = compiled_sample_l0() if compiled and kind in ("exp", "linear") else sample_l0
+    return draw(t, w, n_samples, kind=kind, det=True, pad=pad)
 
 
 def merge_sorted(z: Tensor, new_z: Tensor, values: Tensor | None = None,
@@ -273,7 +287,8 @@ def up_sample(model: NeuSModel, origins: Tensor, dirs: Tensor, z: Tensor, cfg: R
         for i in range(steps):
             w = upsample_section_weights(z, sdf, radius, 64.0 * 2**i)  # (B, N-1)
             new_z = draw_fine_samples(z, w, per_round, sampler, cfg.point_weights,
-                                      cfg.weights_as_density, cfg.l0_pad)
+                                      cfg.weights_as_density, cfg.l0_pad,
+                                      cfg.compile_sampler)
             new_all.append(new_z)
             if i + 1 == steps:
                 z, _ = merge_sorted(z, new_z)

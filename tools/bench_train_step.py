@@ -3,7 +3,8 @@
 Usage:
     python tools/bench_train_step.py [--conf demo] [--views 8] [--width 100] [--height 75]
                                      [--warm 150] [--steps 20] [--rounds 3] [--threads 1]
-                                     [--device cpu|cuda] [--compile] [override ...]
+                                     [--device cpu|cuda] [--compile] [--only VARIANT ...]
+                                     [override ...]
 
 Builds the built-in ``demo`` scene (`neus_l0.data.synthetic.make_scene`), trains the config
 for ``--warm`` iterations (the baseline, so the shape has moved away from the initial
@@ -18,7 +19,9 @@ ray, and the loss over the timed steps (a sanity check: variants should stay clo
 Variants: ``baseline`` (NeuS), ``sphere`` (`render.cull_outside_sphere`), ``grid``
 (`render.occupancy.enabled`), ``grid+eik0.25`` (also `train.eikonal_fraction=0.25`),
 ``eik0.25`` alone, and on CUDA ``amp-bf16`` / ``amp-fp16`` and ``grid+amp-bf16``. With
-``--compile`` a ``compile-color`` variant runs the colour network through `torch.compile`
+``--compile`` a ``compile-color`` variant runs the colour network through `torch.compile`,
+and ``compile-sampler`` the fine-sample draw (`neus_l0.sampling.sample_l0` as the rendering
+calls it, ``dynamic=True`` since the number of active rays varies)
 (the SDF network cannot be: its gradient is taken with ``create_graph=True`` and dynamo's
 AOT autograd does not support double backward).
 """
@@ -63,6 +66,7 @@ def variants(device: str, compile_: bool) -> dict[str, list[str]]:
         v["grid+amp-bf16"] = ["render.occupancy.enabled=true", "train.amp=bf16"]
     if compile_:
         v["compile-color"] = []
+        v["compile-sampler"] = []
     return v
 
 
@@ -78,6 +82,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--compile", action="store_true")
+    ap.add_argument("--only", nargs="+", default=None, metavar="VARIANT",
+                    help="time only these variants (baseline is always kept)")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -103,7 +109,13 @@ def main() -> None:
     state = copy.deepcopy(model.state_dict())
 
     runs = {}
-    for name, extra in variants(device.type, args.compile).items():
+    chosen = variants(device.type, args.compile)
+    if args.only:
+        unknown = set(args.only) - set(chosen)
+        if unknown:
+            ap.error(f"--only: unknown variants {sorted(unknown)} (have {sorted(chosen)})")
+        chosen = {k: v for k, v in chosen.items() if k == "baseline" or k in args.only}
+    for name, extra in chosen.items():
         cfg = load_config(args.conf, args.overrides + extra)
         m = make_model(cfg, device)
         m.load_state_dict(state)
@@ -131,9 +143,15 @@ def main() -> None:
         r = runs[name]
         train_step(m, o, scene, cfg, args.warm - args.warm % cfg.render.occupancy.update_every,
                    r["gen"], occupancy=r["grid"], scaler=r["scaler"])
+    import neus_l0.rendering as rendering_module
+
+    eager_sampler = rendering_module.sample_l0
+    compiled_sampler = torch.compile(eager_sampler, dynamic=True) if args.compile else None
     for _ in range(args.rounds):
-        for r in runs.values():
+        for name, r in runs.items():
             cfg, m = r["cfg"], r["model"]
+            rendering_module.sample_l0 = (compiled_sampler if name == "compile-sampler"
+                                          else eager_sampler)
             r["counter"]["points"] = 0
             losses = []
             sync()
@@ -146,6 +164,7 @@ def main() -> None:
             r["its"].append(args.steps / (time.perf_counter() - t0))
             r["points"] = r["counter"]["points"] / args.steps
             r["losses"].append(torch.stack(losses)[:, 0].mean().item())
+    rendering_module.sample_l0 = eager_sampler
     # Active rays and samples per active ray, on one batch per variant (outside the timing).
     from neus_l0.data.rays import random_rays
     from neus_l0.rendering import render_rays
