@@ -212,7 +212,7 @@ class RenderConfig:
     """The occupancy grid (off by default)."""
     compile_sampler: bool = False
     """Run the L0 fine-sample draw (``l0``, ``l0-linear``) through `torch.compile` (fused
-    kernels instead of ~50 small ones). Measured on the CPU: the draw alone 1.9x faster, a
+    kernels instead of ~50 small ones). Measured on the CPU: the draw alone 1.35x faster, a
     demo training step 1.05x, against seconds of compilation at start-up
     (docs/BENCHMARKS.md); not measured on a GPU, where launch overhead makes it likelier to
     pay. Needs a C++ compiler on the CPU."""

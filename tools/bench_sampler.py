@@ -3,12 +3,15 @@
 Usage:
     python tools/bench_sampler.py [--rays 4096] [--points 128] [--samples 64] [--repeat 50]
                                   [--device cpu|cuda|all] [--dtype float32|float64]
+                                  [--compile]
 
 Both samplers get the same NeuS-like rays: N sorted positions with a sharp surface peak.
 ``sample_pdf`` gets the N-1 section weights (bins = the N positions), ``sample_l0`` the N
 point weights, so both draw from the same coarse information. Prints the minimum and median
 time per call and the ratio of minima to ``sample_pdf``, measured side by side, interleaved,
-in one process.
+in one process. With ``--compile`` the exp draw and ``sample_pdf`` also run through
+`torch.compile` (``dynamic=True``, ``det=True``, as `render.compile_sampler` uses it; compiled
+in the warm-up), beside their eager ``det=True`` calls.
 """
 
 from __future__ import annotations
@@ -70,6 +73,15 @@ def bench(device: str, args: argparse.Namespace) -> list[tuple[str, float, float
         "sample_l0 inverse": lambda: sample_l0(t, w, n, kind="inverse", det=False),
         "sample_l0 linear": lambda: sample_l0(t, w, n, kind="linear", det=False),
     }
+    if args.compile:
+        c_l0 = torch.compile(sample_l0, dynamic=True)
+        c_pdf = torch.compile(sample_pdf, dynamic=True)
+        # det=True, as the up-sampling draws (dynamo cannot trace torch.rand with symbolic
+        # shapes); the eager det=True draws are timed beside them.
+        fns["pdf det"] = lambda: sample_pdf(t, w_sec, n, det=True)
+        fns["compiled pdf det"] = lambda: c_pdf(t, w_sec, n, det=True)
+        fns["l0 exp det"] = lambda: sample_l0(t, w, n, kind="exp", det=True)
+        fns["compiled l0 exp det"] = lambda: c_l0(t, w, n, kind="exp", det=True)
     per: dict[str, list[float]] = {k: [] for k in fns}
     rounds = 10
     for _ in range(rounds):
@@ -88,6 +100,8 @@ def main() -> None:
     p.add_argument("--device", default="all", choices=["cpu", "cuda", "all"])
     p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    p.add_argument("--compile", action="store_true",
+                   help="also time torch.compile'd sample_l0 (exp) and sample_pdf")
     args = p.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
