@@ -7,5 +7,7 @@
 * `holdout`: view subsets of a `Scene` for held-out PSNR;
 * `sample_distance`: distance of the up-sampled (fine) samples to the true surface;
 * `ray_backend`: the same runs as Ray tasks;
-* `plots`: figures and the Markdown table in ``DIR/plots/``.
+* `plots`: figures and the Markdown table in ``DIR/plots/``;
+* `arms`: two configs compared side by side (`tools/bench_fast_vs_neus.py`): Chamfer curves
+  from snapshot checkpoints, the verdict, table and plot.
 """
