@@ -293,3 +293,20 @@ def test_fine_points_world_uses_the_scale_mat():
     S[:3, 3] = [1.0, 2.0, 3.0]
     pts = fine_points_world(o, d, z, S)
     np.testing.assert_allclose(pts, [[1, 2, -2], [1, 2, 3], [1, 2, 8]], atol=1e-6)
+
+
+def test_paired_differences_exact():
+    from neus_l0.bench.plots import paired_differences
+
+    def row(sampler, seed, overall, its, budget=60.0, scene="s"):
+        return {"scene": scene, "sampler": sampler, "budget_s": budget, "seed": seed,
+                "status": "done", "overall": overall, "iterations": its}
+
+    rows = [row("hvs", s, 5.0, 100) for s in range(6)]
+    rows += [row("l0", s, 4.0 + 0.1 * s, 200) for s in range(6)]  # lower in all 6 pairs
+    rows += [row("l0", 9, 1.0, 100)]                               # no hvs partner: unpaired
+    rows += [{**row("hvs", 7, 5.0, 100), "status": "failed"}, row("l0", 7, 9.0, 100)]
+    text = paired_differences(rows)
+    # differences -1.0, -0.9, ..., -0.5: mean -0.75; sign test 2 * (1/2)^6 = 0.03125
+    assert "| l0 | 6 | 6 | -0.750 | -1.000 .. -0.500 | 2.00 | 0.0312 |" in text
+    assert paired_differences([row("l0", 0, 1.0, 10)]) == ""

@@ -211,11 +211,53 @@ def results_table(rows: list[dict]) -> str:
     text = "\n".join(lines) + "\n"
     text += ("\nChamfer distances and sample distances in world units (mean ± sample std over "
              "seeds); PSNR over the foreground of the held-out views.\n")
+    text += paired_differences(rows)
     failed = [r for r in rows if r["status"] != "done"]
     if failed:
         text += "\nFailed runs:\n\n"
         text += "".join(f"- `{r['run_dir']}`: {r['error']}\n" for r in failed)
     return text
+
+
+def paired_differences(rows: list[dict], reference: str = "hvs") -> str:
+    """Markdown: each sampler against `reference` in runs that differ only in the sampler.
+
+    A pair is two done runs with the same scene, budget and seed. Per sampler: the number of
+    pairs, in how many the sampler's Chamfer is lower, the mean and range of the Chamfer
+    difference (sampler - reference; negative favours the sampler), the mean ratio of
+    iterations reached (load and per-step cost move it under a wall-clock budget), and the
+    two-sided sign-test p-value of "lower as often as higher". Empty when there are no pairs.
+    """
+    from math import comb
+
+    done = {(r["scene"], r["sampler"], r["budget_s"], r["seed"]): r for r in _done(rows)}
+    samplers = sorted({k[1] for k in done} - {reference})
+    lines = []
+    for sampler in samplers:
+        diffs, ratios = [], []
+        for (scene, s, budget, seed), r in done.items():
+            ref = done.get((scene, reference, budget, seed))
+            if s != sampler or ref is None or r["overall"] is None or ref["overall"] is None:
+                continue
+            diffs.append(r["overall"] - ref["overall"])
+            if r.get("iterations") and ref.get("iterations"):
+                ratios.append(r["iterations"] / ref["iterations"])
+        if not diffs:
+            continue
+        n, wins = len(diffs), sum(d < 0 for d in diffs)
+        k = min(wins, n - wins)
+        p = min(1.0, 2 * sum(comb(n, i) for i in range(k + 1)) / 2**n)
+        d = np.array(diffs)
+        ratio = f"{np.mean(ratios):.2f}" if ratios else "–"
+        lines.append(f"| {sampler} | {n} | {wins} | {d.mean():+.3f} | {d.min():+.3f} .. "
+                     f"{d.max():+.3f} | {ratio} | {p:.3g} |")
+    if not lines:
+        return ""
+    head = (f"\nPaired runs (same scene, budget and seed), each sampler against `{reference}`"
+            " (Chamfer difference = sampler - reference; negative favours the sampler):\n\n"
+            "| sampler | pairs | lower Chamfer in | mean difference | range | iterations ratio"
+            " | sign-test p |\n|---|---|---|---|---|---|---|\n")
+    return head + "\n".join(lines) + "\n"
 
 
 def write_plots(out_dir: str | Path, rows: list[dict] | None = None) -> list[Path]:
