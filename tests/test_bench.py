@@ -310,3 +310,19 @@ def test_paired_differences_exact():
     # differences -1.0, -0.9, ..., -0.5: mean -0.75; sign test 2 * (1/2)^6 = 0.03125
     assert "| l0 | 6 | 6 | -0.750 | -1.000 .. -0.500 | 2.00 | 0.0312 |" in text
     assert paired_differences([row("l0", 0, 1.0, 10)]) == ""
+
+
+def test_iteration_matched_effect_recovers_an_exact_offset():
+    from neus_l0.bench.plots import iteration_matched_effect
+
+    rows = []
+    for scene, a, b in (("s1", 20.0, -1.5), ("s2", 12.0, -0.8)):
+        for sampler, g in (("hvs", 0.0), ("l0", -0.25)):
+            for its in (300, 700, 1500, 4000):
+                rows.append({"scene": scene, "sampler": sampler, "budget_s": float(its),
+                             "seed": 0, "status": "done", "iterations": its,
+                             "overall": a + b * np.log(its) + g})
+    text = iteration_matched_effect(rows)
+    # 16 runs, 5 parameters: the noise-free offset is recovered exactly, with zero error
+    assert "| l0 | 16 | 2 | -0.250 | 0.000 | 11 |" in text
+    assert iteration_matched_effect(rows[:4]) == ""  # one sampler only: nothing to fit

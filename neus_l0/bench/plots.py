@@ -212,6 +212,7 @@ def results_table(rows: list[dict]) -> str:
     text += ("\nChamfer distances and sample distances in world units (mean ± sample std over "
              "seeds); PSNR over the foreground of the held-out views.\n")
     text += paired_differences(rows)
+    text += iteration_matched_effect(rows)
     failed = [r for r in rows if r["status"] != "done"]
     if failed:
         text += "\nFailed runs:\n\n"
@@ -257,6 +258,55 @@ def paired_differences(rows: list[dict], reference: str = "hvs") -> str:
             " (Chamfer difference = sampler - reference; negative favours the sampler):\n\n"
             "| sampler | pairs | lower Chamfer in | mean difference | range | iterations ratio"
             " | sign-test p |\n|---|---|---|---|---|---|---|\n")
+    return head + "\n".join(lines) + "\n"
+
+
+def iteration_matched_effect(rows: list[dict], reference: str = "hvs") -> str:
+    """Markdown: each sampler's Chamfer offset against `reference` at equal iterations.
+
+    Wall-clock budgets mix the sampler's effect with the iterations each run got (machine
+    load, per-step cost). This fits, over every done run of `reference` and the sampler,
+
+        overall = a_scene + b_scene * log(iterations) + g * [sampler],
+
+    by least squares (a line in log-iterations per scene, shared by both samplers) and
+    reports g (negative: the sampler's Chamfer is lower at the same iteration count) with
+    its standard error and the residual degrees of freedom. Empty when the fit has no
+    degrees of freedom left.
+    """
+    lines = []
+    samplers = sorted({r["sampler"] for r in _done(rows)} - {reference})
+    for sampler in samplers:
+        rs = [r for r in _done(rows) if r["sampler"] in (reference, sampler)
+              and r.get("overall") is not None and r.get("iterations")
+              and math.isfinite(r["overall"])]
+        scenes = sorted({r["scene"] for r in rs})
+        if not rs or len({r["sampler"] for r in rs}) < 2:
+            continue
+        X = np.zeros((len(rs), 2 * len(scenes) + 1))
+        y = np.array([r["overall"] for r in rs], dtype=float)
+        for i, r in enumerate(rs):
+            j = scenes.index(r["scene"])
+            X[i, 2 * j] = 1.0
+            X[i, 2 * j + 1] = math.log(r["iterations"])
+            X[i, -1] = float(r["sampler"] == sampler)
+        dof = len(rs) - np.linalg.matrix_rank(X)
+        if dof <= 0:
+            continue
+        coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+        resid = y - X @ coef
+        sigma2 = float(resid @ resid) / dof
+        cov = sigma2 * np.linalg.pinv(X.T @ X)
+        se = math.sqrt(max(cov[-1, -1], 0.0))
+        lines.append(f"| {sampler} | {len(rs)} | {len(scenes)} | {coef[-1]:+.3f} | {se:.3f} "
+                     f"| {dof} |")
+    if not lines:
+        return ""
+    head = (f"\nIteration-matched offset against `{reference}` (least squares over all runs: "
+            "Chamfer = scene intercept + scene slope x log(iterations) + offset x [sampler]; "
+            "negative favours the sampler):\n\n"
+            "| sampler | runs | scenes | offset | std. error | residual dof |\n"
+            "|---|---|---|---|---|---|\n")
     return head + "\n".join(lines) + "\n"
 
 
