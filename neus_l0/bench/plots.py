@@ -10,8 +10,9 @@
 * ``sample_distance.png``: mean distance of the fine samples to the true surface against
   the iteration (``sample_dist`` of metrics.jsonl), a panel per scene, one line per seed of
   each sampler's longest run;
-* ``table.md``: the final numbers per (scene, sampler, budget), mean ± std over seeds, and
-  the failed runs.
+* ``table.md``: the final numbers per (scene, sampler, budget), mean ± std over seeds, the
+  failed runs, the paired differences (`paired_differences`) and the iteration-matched
+  offset (`iteration_matched_effect`) of each sampler against ``hvs``.
 """
 
 from __future__ import annotations
