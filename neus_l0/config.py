@@ -225,7 +225,15 @@ class TrainConfig:
     iters: int = 300000
     """Total iterations (NeuS's `end_iter`); the cosine schedule ends here."""
     batch_size: int = 512
-    """Rays per iteration."""
+    """Rays per iteration (the starting number when `sample_budget` is set)."""
+    sample_budget: int = 0
+    """Foreground samples per iteration to aim for (0: off, every iteration draws
+    `batch_size` rays). Rays that miss the unit sphere (`render.cull_outside_sphere`) or the
+    occupancy grid get no samples, so a fixed batch evaluates fewer samples than the device
+    could; with a budget the number of rays is re-set at every log step (the loop's host
+    read-back) to ``rays * sample_budget / samples of that step``, kept within
+    [batch_size / 8, 8 * batch_size] (instant-nsr-pl's dynamic ray count). The current
+    number is saved in checkpoints (resume stays exact) and logged as ``rays``."""
     lr: float = 5e-4
     """Peak learning rate of Adam."""
     lr_alpha: float = 0.05
@@ -428,6 +436,8 @@ def _validate(obj: Any, prefix: str) -> None:
         for name in ("iters", "batch_size", "log_every"):
             if getattr(obj, name) < 1:
                 raise bad(name, "must be >= 1")
+        if obj.sample_budget < 0:
+            raise bad("sample_budget", "must be >= 0 (0: off)")
         if obj.lr <= 0:
             raise bad("lr", "must be > 0")
     if isinstance(obj, (SDFConfig, ColorConfig, BackgroundConfig)):

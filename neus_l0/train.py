@@ -50,7 +50,7 @@ from neus_l0.schedule import cos_anneal_ratio, lr_factor
 #: A training hook: ``hook(iteration, model, scene, cfg) -> {name: number}``.
 Hook = Callable[[int, NeuSModel, Scene, Config], dict]
 
-METRIC_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "s")
+METRIC_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "s", "samples")
 
 
 @dataclasses.dataclass
@@ -139,10 +139,31 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config, iteration: 
     return lr
 
 
+def next_batch_size(rays: int, samples: float, cfg: Config) -> int:
+    """The ray count of the next iterations under `train.sample_budget`.
+
+    Args:
+        rays: the current ray count; samples: the foreground samples one step at that count
+            evaluated.
+
+    Returns:
+        ``round(rays * sample_budget / samples)`` within [batch_size / 8, 8 * batch_size]
+        (at least 1); `rays` unchanged when the budget is off.
+    """
+    t = cfg.train
+    if t.sample_budget <= 0:
+        return rays
+    lo, hi = max(1, t.batch_size // 8), 8 * t.batch_size
+    if not math.isfinite(samples) or samples <= 0:
+        return hi  # no ray got samples: draw as many as allowed
+    return int(min(max(round(rays * t.sample_budget / samples), lo), hi))
+
+
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
                iteration: int, generator: torch.Generator, *,
                occupancy: OccupancyGrid | None = None,
-               scaler: torch.amp.GradScaler | None = None) -> Tensor:
+               scaler: torch.amp.GradScaler | None = None,
+               batch_size: int | None = None) -> Tensor:
     """One optimisation step on a random batch of rays.
 
     No host synchronisation, except where a switch asks for one on CUDA: the occupancy
@@ -157,12 +178,14 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
         generator: the source of the ray batch and of the sample jitter.
         occupancy: the occupancy grid (updated here every `update_every` iterations).
         scaler: the fp16 gradient scaler (`make_scaler`); None: none.
+        batch_size: rays of this step (None: `train.batch_size`).
 
     Returns:
-        (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order.
+        (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order
+        (``samples``: foreground samples evaluated, active rays x samples per ray).
     """
     set_learning_rate(optimizer, cfg, iteration)
-    batch = random_rays(scene, cfg.train.batch_size, generator)
+    batch = random_rays(scene, batch_size or cfg.train.batch_size, generator)
     use_mask = cfg.train.mask_weight > 0
     mask = (batch["mask"] > 0.5).float() if use_mask else torch.ones_like(batch["mask"])
     update_occupancy(occupancy, model, cfg, iteration)
@@ -183,7 +206,8 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     else:
         losses["loss"].backward()
         optimizer.step()
-    values = [losses[k] for k in METRIC_NAMES[:-1]] + [out["s_val"].reshape(())]
+    samples = out["active"].sum() * out["z_vals"].shape[1]
+    values = [losses[k] for k in METRIC_NAMES[:5]] + [out["s_val"].reshape(()), samples]
     return torch.stack([v.detach().reshape(()) for v in values])
 
 
@@ -353,6 +377,7 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     generator = torch.Generator(device=device)
     generator.manual_seed(cfg.train.seed)
     iteration = 0
+    rays = cfg.train.batch_size  # adapted at log steps under train.sample_budget
     if ckpt_state is not None:
         try:
             model.load_state_dict(ckpt_state["model"])
@@ -368,6 +393,7 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
         if "scaler" in ckpt_state:
             scaler.load_state_dict(ckpt_state["scaler"])
         iteration = int(ckpt_state["iteration"])
+        rays = int(ckpt_state.get("batch_size", rays))
         del ckpt_state
 
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -384,6 +410,7 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     def checkpoint() -> Path:
         state = {
             "iteration": iteration,
+            "batch_size": rays,
             "model": model.state_dict(),
             "optimizer": optimizer.state_dict(),
             "rng": _rng_state(generator),
@@ -434,15 +461,20 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     log_t0, log_it0 = start_time, iteration
     model.train()
     while iteration < t.iters:
-        acc += train_step(model, optimizer, scene, cfg, iteration, generator,
-                          occupancy=occupancy, scaler=scaler)
+        step = train_step(model, optimizer, scene, cfg, iteration, generator,
+                          occupancy=occupancy, scaler=scaler, batch_size=rays)
+        acc += step
         acc_n += 1
         iteration += 1
         bar.update(1)
         if iteration % t.log_every == 0 or iteration == t.iters:
-            values = (acc / acc_n).tolist()  # the loop's only host synchronisation
+            # the loop's only host synchronisation: the means, and this step's samples
+            *values, step_samples = torch.cat([acc / acc_n, step[-1:]]).tolist()
             now = time.monotonic()
             last_metrics = dict(zip(METRIC_NAMES, values, strict=True))
+            last_metrics.update(rays=rays)
+            # depends only on this step, not on the window, so a resume stays exact
+            rays = next_batch_size(rays, step_samples, cfg)
             last_metrics.update(iter=iteration, lr=optimizer.param_groups[0]["lr"],
                                 its_per_s=(iteration - log_it0) / max(now - log_t0, 1e-9),
                                 elapsed=now - start_time)

@@ -408,3 +408,43 @@ def test_amp_trains_on_cuda(scene, tmp_path, amp):
     m = read_metrics(tmp_path / "run")
     assert all(np.isfinite(r["loss"]) for r in m)
     assert m[-1]["loss"] < 0.8 * m[0]["loss"]
+
+
+def test_next_batch_size_closed_form():
+    from neus_l0.train import next_batch_size
+
+    cfg = load_config("demo", ["train.batch_size=128", "train.sample_budget=8192"])
+    assert next_batch_size(128, 4096.0, cfg) == 256    # half the budget: twice the rays
+    assert next_batch_size(200, 8192.0, cfg) == 200    # on budget: unchanged
+    assert next_batch_size(128, 1.0, cfg) == 1024      # at most 8 x batch_size
+    assert next_batch_size(128, 1e9, cfg) == 16        # at least batch_size / 8
+    assert next_batch_size(128, 0.0, cfg) == 1024      # no ray got samples
+    assert next_batch_size(77, 4096.0, load_config("demo", ["train.batch_size=128"])) == 77
+    with pytest.raises(ConfigError, match="sample_budget"):
+        load_config("demo", ["train.sample_budget=-1"])
+
+
+def test_sample_budget_adapts_the_rays_and_resumes_exactly(scene, tmp_path):
+    cfg = load_config("demo", SMALL + ["train.iters=12", "train.log_every=3",
+                                       "render.cull_outside_sphere=true",
+                                       "train.sample_budget=6000"])
+    train(scene, cfg, tmp_path / "a", progress=False)
+    logs = [m for m in read_metrics(tmp_path / "a") if "rays" in m]
+    assert [m["iter"] for m in logs] == [3, 6, 9, 12]
+    assert logs[0]["rays"] == 64 and logs[1]["rays"] != 64  # adapted after the first log
+    per_ray = cfg.render.n_samples + cfg.render.n_importance
+    for m in logs:
+        assert 0 < m["samples"] <= m["rays"] * per_ray
+    assert max(m["rays"] for m in logs) <= 8 * 64
+    # 64 rays x 32 samples cannot reach 6000 samples: the count grows, up to 8 x 64
+    assert logs[1]["rays"] > 64
+    a = load_checkpoint(latest_checkpoint(tmp_path / "a"))
+    assert 64 < a["batch_size"] <= 8 * 64
+    # interrupted mid-window (iteration 5), resumed: bitwise the same run
+    train(scene, cfg, tmp_path / "b", progress=False, stop_at=5)
+    train(scene, cfg, tmp_path / "b", resume=True, progress=False)
+    b = load_checkpoint(latest_checkpoint(tmp_path / "b"))
+    assert a["iteration"] == b["iteration"] == 12 and a["batch_size"] == b["batch_size"]
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+    assert torch.equal(a["rng"]["generator"], b["rng"]["generator"])
