@@ -97,3 +97,65 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise NeusL0Error(f"{path}: refusing checkpoint with NaN/inf in '{bad}'; "
                           "resume from an earlier checkpoint (delete this one)")
     return state
+
+
+# ------------------------------------------------------------------------------------------
+# Training state: what a checkpoint holds and how a resume restores it.
+
+
+def rng_state(generator: torch.Generator) -> dict:
+    """The loop generator's state and torch's global CPU (and CUDA) states."""
+    state = {"generator": generator.get_state(), "torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng(generator: torch.Generator, state: dict) -> None:
+    """Inverse of `rng_state`."""
+    generator.set_state(state["generator"].cpu())
+    torch.set_rng_state(state["torch"].cpu())
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
+
+
+def restore_training(path: Path, state: dict, model: torch.nn.Module,
+                     optimizer: torch.optim.Optimizer, generator: torch.Generator,
+                     scaler: torch.amp.GradScaler, occupancy: Any | None = None) -> tuple[int, int]:
+    """Put a checkpoint's training state back (the resume of `neus_l0.train.train`).
+
+    Args:
+        path: the checkpoint (named in errors); state: its contents (`load_checkpoint`).
+        model, optimizer, generator, scaler: restored in place.
+        occupancy: the occupancy grid, restored from the checkpoint or, for a checkpoint of
+            a run without the grid, rebuilt from the restored SDF.
+
+    Returns:
+        the iteration to continue from and the batch size in force then.
+
+    Raises:
+        NeusL0Error: the checkpoint's networks do not fit the config's.
+    """
+    try:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+    except (RuntimeError, ValueError, KeyError) as exc:
+        raise NeusL0Error(f"{path}: does not fit the config's networks (resume with the "
+                          f"run's config.yaml): {str(exc).splitlines()[0]}") from None
+    restore_rng(generator, state["rng"])
+    if occupancy is not None and "occupancy" in state:
+        occupancy.load_state_dict(state["occupancy"])
+    elif occupancy is not None:
+        occupancy.update(model.sdf.sdf, model.variance.inv_s())
+    if "scaler" in state:
+        scaler.load_state_dict(state["scaler"])
+    return int(state["iteration"]), int(state.get("batch_size", 0))
+
+
+def prune_checkpoints(run_dir: Path, keep: int, protected: set[Path]) -> None:
+    """Delete all but the newest `keep` checkpoints that are not in `protected`."""
+    if keep <= 0:
+        return
+    others = [p for p in list_checkpoints(run_dir) if p not in protected]
+    for old in others[:-keep]:
+        old.unlink(missing_ok=True)
