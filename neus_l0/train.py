@@ -51,12 +51,13 @@ from neus_l0.checkpoint import (
     save_checkpoint,
 )
 from neus_l0.config import Config, config_from_dict, dump_config, to_dict
-from neus_l0.data.rays import random_rays
+from neus_l0.data.rays import random_pixel_rays, random_rays
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields import NeuSModel, build_model
 from neus_l0.losses import neus_loss
 from neus_l0.occupancy import OccupancyGrid
+from neus_l0.pixel_pool import PixelPool, reachable_pixels
 from neus_l0.rendering import RayBounds, render_rays
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
 from neus_l0.validation import validation_image, validation_views  # noqa: F401 (moved)
@@ -177,7 +178,7 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
                occupancy: OccupancyGrid | None = None,
                scaler: torch.amp.GradScaler | None = None,
                batch_size: int | None = None, bounds: Sequence[RayBounds] = (),
-               sampler=None) -> Tensor:
+               sampler=None, pool: PixelPool | None = None) -> Tensor:
     """One optimisation step on a random batch of rays.
 
     Fixed shapes and no host synchronisation, except the occupancy grid's update (once per
@@ -194,6 +195,7 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
         batch_size: rays of this step (None: `train.batch_size`).
         bounds: what else narrows the rays (a visual hull), before the grid.
         sampler: the up-sampling draw (default: the config's).
+        pool: draw the rays from these pixels only (`neus_l0.pixel_pool`; None: from all).
 
     Returns:
         (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order
@@ -201,7 +203,12 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     """
     # learning rate, batch, grid update
     set_learning_rate(optimizer, cfg, iteration)
-    batch = random_rays(scene, batch_size or cfg.train.batch_size, generator)
+    n_rays = batch_size or cfg.train.batch_size
+    if pool is None:
+        batch, mask_scale = random_rays(scene, n_rays, generator), 1.0
+    else:
+        batch = random_pixel_rays(scene, n_rays, pool.pixels, generator)
+        mask_scale = pool.fraction
     use_mask = cfg.train.mask_weight > 0
     mask = (batch["mask"] > 0.5).float() if use_mask else torch.ones_like(batch["mask"])
     update_occupancy(occupancy, model, cfg, iteration)
@@ -213,7 +220,7 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
                           cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end),
                           perturb=cfg.render.perturb, generator=generator, create_graph=True,
                           bounds=bounds)
-    losses = neus_loss(out, batch["rgb"], mask, cfg.train, generator)
+    losses = neus_loss(out, batch["rgb"], mask, cfg.train, generator, mask_scale)
     # backward and update
     optimizer.zero_grad(set_to_none=True)
     if scaler is not None and scaler.is_enabled():
@@ -263,6 +270,7 @@ class TrainLoop:
     occupancy: OccupancyGrid | None = None
     bounds: tuple = ()
     sampler: object = None
+    pool: PixelPool | None = None
     iteration: int = 0
     rays: int = 0
     clock: Clock = dataclasses.field(default_factory=Clock)
@@ -361,6 +369,8 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
                      generator=torch.Generator(device=device),
                      occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
     loop.generator.manual_seed(cfg.train.seed)
+    loop.pool = reachable_pixels(scene, cfg.render, loop.bounds,
+                                 background=model.background is not None)
     if state is not None:
         loop.iteration, rays = restore_training(ckpt, state, model, loop.optimizer,
                                                 loop.generator, loop.scaler, loop.occupancy)
@@ -467,7 +477,8 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
         # step
         step = train_step(loop.model, loop.optimizer, loop.scene, cfg, loop.iteration,
                           loop.generator, occupancy=loop.occupancy, scaler=loop.scaler,
-                          batch_size=loop.rays, bounds=loop.bounds, sampler=loop.sampler)
+                          batch_size=loop.rays, bounds=loop.bounds, sampler=loop.sampler,
+                          pool=loop.pool)
         acc += step
         steps += 1
         loop.iteration += 1
