@@ -201,8 +201,10 @@ def test_psnr_stride_is_the_smallest_within_budget(h, w, base, pixels):
 
 def test_default_config_by_device():
     assert default_conf("cpu") == "demo" and default_conf("cuda") == "fast"
-    assert SweepSpec("d", [], [], [], device="cuda:0").conf_name == "fast"
-    assert SweepSpec("d", [], [], [], conf="wmask").conf_name == "wmask"
+    cuda = SweepSpec("d", [], [], [], device="cuda:0")
+    assert (cuda.conf, cuda.resolution, cuda.eval_density) == ("fast", 256, 0.2)
+    cpu = SweepSpec("d", [], [], [], conf="wmask", eval_density=1.0)
+    assert (cpu.conf, cpu.resolution, cpu.eval_density) == ("wmask", 128, 1.0)
 
 
 def test_step_reporter_throttles_and_the_display_follows(tmp_path):

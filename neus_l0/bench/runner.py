@@ -66,7 +66,7 @@ class RunSpec:
             uses the same config even if the YAML file changes meanwhile; None: resolve
             `conf` and `overrides` in the run's process.
         device: ``cpu`` or ``cuda``.
-        threads: torch CPU threads in the run's process (None: torch's default).
+        threads: torch CPU threads in the run's process (None or 0: torch's default).
         holdout: hold out every K-th view (0: none; see `neus_l0.bench.holdout`).
         resolution: marching-cubes resolution.
         eval_density: Chamfer sampling density and thinning radius (world units).

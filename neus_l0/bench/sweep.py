@@ -126,13 +126,27 @@ def check_settings(out_dir: Path, settings: dict) -> None:
     atomic_write_json(path, settings)
 
 
-def default_conf(device: str) -> str:
-    """The config a sweep uses when none is named: ``fast`` on CUDA, ``demo`` on a CPU.
+#: What a sweep uses for the settings not given, by device. On a CPU: the `demo` config
+#: (NeuS's 8x256 `wmask` would spend a CPU's budget on a few hundred iterations), one torch
+#: thread per run (on a loaded machine torch's default of one thread per core made a run
+#: 25x slower), meshes at 128^3 and Chamfer sampled every 0.5 world units (the synthetic
+#: scenes' ground-truth point spacing): at 256^3 and the DTU protocol's 0.2, marching cubes
+#: and scoring took about 1 and 3 minutes per run on the 2-core dev machine
+#: (docs/BENCHMARKS.md). On CUDA: `fast`, torch's thread count, 256^3 and 0.2.
+DEVICE_DEFAULTS = {
+    "cpu": {"conf": "demo", "threads": 1, "resolution": 128, "eval_density": 0.5},
+    "cuda": {"conf": "fast", "threads": 0, "resolution": 256, "eval_density": 0.2},
+}
 
-    Both are sized for their device (`confs/fast.yaml`, `confs/demo.yaml`); NeuS's own
-    ``wmask`` (an 8x256 MLP) would spend a CPU's budget on a few hundred iterations.
-    """
-    return "fast" if str(device).startswith("cuda") else "demo"
+
+def device_defaults(device: str) -> dict:
+    """`DEVICE_DEFAULTS` of ``cuda`` (any ``cuda:N``) or else ``cpu``."""
+    return dict(DEVICE_DEFAULTS["cuda" if str(device).startswith("cuda") else "cpu"])
+
+
+def default_conf(device: str) -> str:
+    """The config a sweep uses when none is named: ``fast`` on CUDA, ``demo`` on a CPU."""
+    return device_defaults(device)["conf"]
 
 
 @dataclasses.dataclass
@@ -145,15 +159,15 @@ class SweepSpec:
         samplers: up-sampling draws (`neus_l0.config.SAMPLERS`).
         budgets: wall-clock training budgets in seconds.
         seeds: training seeds.
-        conf: the base config (name or YAML path) shared by every run; None: `default_conf`
-            of `device`.
+        conf: the base config (name or YAML path) shared by every run.
         overrides: ``key=value`` overrides of `conf`.
         views, width, height: size of synthesised built-in scenes.
         holdout: hold out every K-th view for PSNR (0: none).
         device: where runs train (``cpu`` or ``cuda``).
-        threads: torch CPU threads per run (None: torch's default).
+        threads: torch CPU threads per run (0: torch's default).
         resolution: marching-cubes resolution.
         eval_density: Chamfer sampling density (world units).
+            (`conf`, `threads`, `resolution`, `eval_density`: None picks `device_defaults`.)
         sample_rays: rays of the sample-distance hook.
         psnr_pixels: at most this many pixels rendered per held-out view
             (`neus_l0.bench.runner.psnr_stride`).
@@ -174,22 +188,23 @@ class SweepSpec:
     holdout: int = 8
     device: str = "cpu"
     threads: int | None = None
-    resolution: int = 256
-    eval_density: float = 0.2
+    resolution: int | None = None
+    eval_density: float | None = None
     sample_rays: int = 256
     psnr_pixels: int = 10000
     backend: str = "local"
     timeout: float | None = None
 
-    @property
-    def conf_name(self) -> str:
-        """The config named, or the device's default."""
-        return str(self.conf) if self.conf is not None else default_conf(self.device)
+    def __post_init__(self):
+        for key, value in device_defaults(self.device).items():
+            if getattr(self, key) is None:
+                setattr(self, key, value)
+        self.conf = str(self.conf)
 
     def settings(self, config: dict) -> dict:
         """What ``DIR/sweep.json`` records (`SHARED_KEYS` must match on a re-run)."""
         return {
-            "config": config, "conf": self.conf_name, "overrides": list(self.overrides),
+            "config": config, "conf": self.conf, "overrides": list(self.overrides),
             "views": self.views, "width": self.width, "height": self.height,
             "holdout": self.holdout, "device": self.device, "threads": self.threads,
             "resolution": self.resolution, "eval_density": self.eval_density,
@@ -202,7 +217,7 @@ class SweepSpec:
         return RunSpec(name=run_name(scene, sampler, float(budget), int(seed)), scene=scene,
                        scene_dir=str(folder), sampler=sampler, budget_s=float(budget),
                        seed=int(seed), out_dir=str(Path(self.out_dir).resolve()),
-                       conf=self.conf_name, overrides=list(self.overrides),
+                       conf=self.conf, overrides=list(self.overrides),
                        device=self.device, threads=self.threads, holdout=self.holdout,
                        resolution=self.resolution, eval_density=self.eval_density,
                        sample_rays=self.sample_rays, config=config,
@@ -253,7 +268,7 @@ def run_sweep(spec: SweepSpec, *, progress: bool = True,
         raise NeusL0Error(f"--psnr-pixels {spec.psnr_pixels}: must be at least 1")
     # The config is resolved once, here: user errors surface before any run, and every run
     # gets exactly this config even if the YAML file changes while the sweep runs.
-    config = to_dict(load_config(spec.conf_name, [*BENCH_OVERRIDES, *spec.overrides]))
+    config = to_dict(load_config(spec.conf, [*BENCH_OVERRIDES, *spec.overrides]))
     check_settings(out_dir, spec.settings(config))
     resolved = [prepare_scene(s, out_dir, spec.views, spec.width, spec.height, progress)
                 for s in spec.scenes]

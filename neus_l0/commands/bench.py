@@ -53,11 +53,14 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--backend", default="local", choices=["local", "ray"],
                    help="local: one run after another (default); ray: Ray tasks")
     p.add_argument("--threads", type=int, default=None,
-                   help="torch CPU threads per run (default: torch's; use 1 on a shared CPU)")
-    p.add_argument("--resolution", type=int, default=256,
-                   help="marching-cubes resolution of each run's mesh (256)")
-    p.add_argument("--eval-density", type=float, default=0.2,
-                   help="Chamfer sampling density in world units (0.2, the DTU protocol)")
+                   help="torch CPU threads per run (default: 1 on a CPU, where torch's one per "
+                        "core slows a loaded machine down many times; 0: torch's default)")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="marching-cubes resolution of each run's mesh (default: 128 on a CPU, "
+                        "256 on CUDA)")
+    p.add_argument("--eval-density", type=float, default=None,
+                   help="Chamfer sampling density in world units (default: 0.5 on a CPU, the "
+                        "synthetic scenes' point spacing; 0.2, the DTU protocol, on CUDA)")
     p.add_argument("--sample-rays", type=int, default=256,
                    help="rays of the fine-sample distance probe (256)")
     p.add_argument("--psnr-pixels", type=int, default=10000, metavar="N",
@@ -109,12 +112,14 @@ def run(args: argparse.Namespace) -> int:
     if owned:
         raise NeusL0Error(f"{', '.join(owned)}: set by the sweep (use --samplers, --seeds, "
                           "--seconds)")
-    if args.resolution < 8:
+    if args.resolution is not None and args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
+    if args.threads is not None and args.threads < 0:
+        raise NeusL0Error(f"--threads {args.threads}: must be 0 (torch's default) or more")
     if args.psnr_pixels < 1:
         raise NeusL0Error(f"--psnr-pixels {args.psnr_pixels}: must be at least 1")
 
-    from neus_l0.bench.sweep import SweepSpec, run_sweep
+    from neus_l0.bench.sweep import SweepSpec, device_defaults, run_sweep
 
     spec = SweepSpec(
         out_dir=args.out, scenes=args.scenes, samplers=args.samplers, budgets=args.seconds,
@@ -123,8 +128,10 @@ def run(args: argparse.Namespace) -> int:
         device=pick_device(args.device), threads=args.threads, resolution=args.resolution,
         eval_density=args.eval_density, sample_rays=args.sample_rays,
         psnr_pixels=args.psnr_pixels, backend=args.backend, timeout=args.timeout)
-    if args.conf is None and not args.quiet:
-        print(f"bench: config {spec.conf_name} (the {spec.device} default; --conf to change)")
+    chosen = [f"--{k.replace('_', '-')} {getattr(spec, k)}" for k in device_defaults(spec.device)
+              if getattr(args, k) is None]
+    if chosen and not args.quiet:
+        print(f"bench: {spec.device} defaults: {' '.join(chosen)}")
     outcome = run_sweep(spec, progress=not args.quiet)
     failed = [r for r in outcome.rows if r["status"] != "done"]
     print(f"{len(outcome.ran)} runs done now, {len(outcome.skipped)} skipped (done before), "
