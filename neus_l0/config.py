@@ -1,4 +1,4 @@
-"""Dataclass configs, read from `neus_l0/confs/*.yaml` with dotted `key=value` overrides.
+"""Dataclass configs, read from `confs/*.yaml` with dotted `key=value` overrides.
 
 One dataclass per component, each field documented where it is declared. A config file is a
 nested YAML mapping whose keys mirror the dataclass fields; every key is optional (missing
@@ -21,8 +21,28 @@ import yaml
 
 from neus_l0.errors import ConfigError
 
+
+def _find_confs_dir() -> Path:
+    """The folder of the built-in configs.
+
+    The YAMLs live in the repository's top-level ``confs/``; a wheel ships them inside the
+    package as ``neus_l0/confs/`` (the build-time mapping in setup.py). So: the checkout's
+    ``confs/`` beside ``pyproject.toml`` (a source tree or an editable install), else the
+    installed package's own ``confs/``.
+    """
+    here = Path(__file__).resolve().parent
+    checkout = here.parent / "confs"
+    if (here.parent / "pyproject.toml").is_file() and checkout.is_dir():
+        return checkout
+    return here / "confs"
+
+
 #: Folder holding the built-in configs (`wmask`, `womask`, `demo`, ...).
-CONFS_DIR = Path(__file__).resolve().parent / "confs"
+CONFS_DIR = _find_confs_dir()
+
+#: Folder prefixes under which a config is also looked up by name in `CONFS_DIR`, so that
+#: ``--conf confs/demo.yaml`` and ``--conf ./confs/demo.yaml`` work from any directory.
+_CONF_PREFIXES = (Path("."), Path("confs"), Path("neus_l0") / "confs")
 
 #: Sampler names accepted by `Config.sampler` (see `neus_l0.rendering.draw_fine_samples`).
 SAMPLERS = ("hvs", "l0", "l0-inverse", "l0-linear")
@@ -450,13 +470,18 @@ def _validate(obj: Any, prefix: str) -> None:
 
 
 def resolve_conf_path(conf: str | Path) -> Path:
-    """Find a config: an existing path, `confs/NAME.yaml` in the package, or a bare `NAME`."""
+    """Find a config: an existing path, else a built-in one in `CONFS_DIR`.
+
+    A built-in config is named ``NAME``, ``NAME.yaml``, ``confs/NAME.yaml`` or
+    ``./confs/NAME.yaml`` (``neus_l0/confs/NAME.yaml``, the old place, too), whatever the
+    working directory.
+    """
     path = Path(conf)
     if path.is_file():
         return path
     name = path.name if path.suffix in (".yaml", ".yml") else path.name + ".yaml"
     candidate = CONFS_DIR / name
-    if path.parent in (Path("."), Path("confs")) and candidate.is_file():
+    if path.parent in _CONF_PREFIXES and candidate.is_file():
         return candidate
     known = ", ".join(sorted(p.stem for p in CONFS_DIR.glob("*.yaml")))
     raise ConfigError(f"{conf}: no such config file (built-in configs: {known})")

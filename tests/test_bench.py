@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from neus_l0.bench.holdout import split_views, subset_scene
 from neus_l0.bench.results import COLUMNS, DETERMINISTIC, NUMERIC
@@ -20,7 +22,7 @@ from neus_l0.bench.sample_distance import (
     fine_points_world,
     object_rays,
 )
-from neus_l0.bench.sweep import run_sweep
+from neus_l0.bench.sweep import SweepSpec, default_conf, run_sweep
 from neus_l0.cli import main
 from neus_l0.config import load_config
 from neus_l0.data.rays import pixel_grid, pixel_rays
@@ -35,7 +37,11 @@ TINY = ["model.sdf.hidden=32", "model.sdf.layers=2", "model.sdf.skip=[]",
         "render.up_sample_steps=2", "train.batch_size=64", "train.warm_up=0",
         "train.iters=8", "train.log_every=4"]
 SWEEP = dict(conf="demo", overrides=TINY, holdout=4, device="cpu", threads=1, resolution=24,
-             eval_density=3.0, sample_rays=32, progress=False)
+             eval_density=3.0, sample_rays=32)
+
+
+def sweep_spec(out, scenes, samplers, budgets, seeds, **kw) -> SweepSpec:
+    return SweepSpec(out, scenes, samplers, budgets, seeds, **{**SWEEP, **kw})
 BUDGET = 30.0
 
 
@@ -43,7 +49,8 @@ BUDGET = 30.0
 def sweep(tiny_scene, tmp_path_factory):
     """A sweep of three runs on the tiny scene: a crashing sampler first, then hvs and l0."""
     out = tmp_path_factory.mktemp("bench") / "sweep"
-    outcome = run_sweep(out, [str(tiny_scene)], ["nope", "hvs", "l0"], [BUDGET], [0], **SWEEP)
+    outcome = run_sweep(sweep_spec(out, [str(tiny_scene)], ["nope", "hvs", "l0"], [BUDGET], [0]),
+                        progress=False)
     return out, outcome
 
 
@@ -80,6 +87,23 @@ def test_sweep_writes_results_with_finite_numbers(sweep):
     assert (out / "scenes" / "demo").exists()
 
 
+def test_runs_record_their_last_step_and_the_psnr_stride(sweep, tiny_scene):
+    from neus_l0.bench.progress import read_step
+    from neus_l0.bench.runner import psnr_stride
+
+    out, _ = sweep
+    scene = load_scene(tiny_scene)
+    for sampler in ("hvs", "l0"):
+        run_dir = out / "runs" / f"demo__{sampler}__30s__seed0"
+        step = read_step(run_dir / "progress.json")
+        assert step["step"].startswith("held-out PSNR") and step["unit"] == "view"
+        assert step["n"] == step["total"] == len(split_views(scene.n_views, 4)[1])
+        report = json.loads((run_dir / "eval.json").read_text())
+        demo = load_config("demo")
+        assert report["psnr_stride"] == psnr_stride(scene.height, scene.width,
+                                                    demo.train.val_downscale, 10000)
+
+
 def test_crashing_run_is_recorded_and_the_sweep_goes_on(sweep):
     out, outcome = sweep
     assert outcome.ran == ["demo__nope__30s__seed0", "demo__hvs__30s__seed0",
@@ -95,8 +119,8 @@ def test_crashing_run_is_recorded_and_the_sweep_goes_on(sweep):
 def test_rerun_skips_finished_runs(sweep):
     out, _ = sweep
     stamps = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/status.json")}
-    again = run_sweep(out, [str(Path(out / "scenes" / "demo").resolve())], ["hvs", "l0"],
-                      [BUDGET], [0], **SWEEP)
+    again = run_sweep(sweep_spec(out, [str(Path(out / "scenes" / "demo").resolve())],
+                                 ["hvs", "l0"], [BUDGET], [0]), progress=False)
     assert again.ran == []
     assert sorted(again.skipped) == ["demo__hvs__30s__seed0", "demo__l0__30s__seed0"]
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
@@ -106,8 +130,8 @@ def test_rerun_skips_finished_runs(sweep):
 def test_other_settings_on_the_same_folder_are_refused(sweep):
     out, _ = sweep
     with pytest.raises(NeusL0Error, match="other settings"):
-        run_sweep(out, [str(out / "scenes" / "demo")], ["hvs"], [BUDGET], [0],
-                  **{**SWEEP, "holdout": 2})
+        run_sweep(sweep_spec(out, [str(out / "scenes" / "demo")], ["hvs"], [BUDGET], [0],
+                             holdout=2), progress=False)
 
 
 def test_plots_are_written(sweep):
@@ -136,8 +160,8 @@ def test_ray_backend_gives_the_rows_of_the_local_one(sweep, tiny_scene, tmp_path
     out, local = sweep
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        remote = run_sweep(tmp_path / "ray", [str(tiny_scene)], ["l0"], [BUDGET], [0],
-                           backend="ray", **SWEEP)
+        remote = run_sweep(sweep_spec(tmp_path / "ray", [str(tiny_scene)], ["l0"], [BUDGET],
+                                      [0], backend="ray"), progress=False)
     finally:
         ray.shutdown()
     (row,) = remote.rows
@@ -149,6 +173,85 @@ def test_ray_backend_gives_the_rows_of_the_local_one(sweep, tiny_scene, tmp_path
 
 
 # --- held-out views ---------------------------------------------------------------------
+
+
+def test_psnr_stride_bounds_the_pixels():
+    from neus_l0.bench.runner import psnr_stride
+
+    # 400x300 at stride 3 is 134x100 = 13400 pixels; stride 4 gives 100x75 = 7500
+    assert psnr_stride(300, 400, 2, 10000) == 4
+    assert psnr_stride(300, 400, 2, 13400) == 3
+    assert psnr_stride(300, 400, 2, 10**9) == 2  # never finer than the validation downscale
+    assert psnr_stride(1, 1, 0, 1) == 1
+    with pytest.raises(ValueError):
+        psnr_stride(10, 10, 1, 0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 2000), st.integers(1, 2000), st.integers(0, 8), st.integers(1, 10**6))
+def test_psnr_stride_is_the_smallest_within_budget(h, w, base, pixels):
+    from neus_l0.bench.runner import psnr_stride
+
+    s = psnr_stride(h, w, base, pixels)
+    assert s >= max(base, 1)
+    assert math.ceil(h / s) * math.ceil(w / s) <= pixels
+    if s > max(base, 1):
+        assert math.ceil(h / (s - 1)) * math.ceil(w / (s - 1)) > pixels
+
+
+def test_default_config_by_device():
+    assert default_conf("cpu") == "demo" and default_conf("cuda") == "fast"
+    cuda = SweepSpec("d", [], [], [], device="cuda:0")
+    assert (cuda.conf, cuda.resolution, cuda.eval_density) == ("fast", 256, 0.2)
+    cpu = SweepSpec("d", [], [], [], conf="wmask", eval_density=1.0)
+    assert (cpu.conf, cpu.resolution, cpu.eval_density) == ("wmask", 128, 1.0)
+
+
+def test_step_reporter_throttles_and_the_display_follows(tmp_path):
+    import io
+
+    from tqdm import tqdm
+
+    from neus_l0.bench.progress import StepDisplay, StepReporter, read_step
+
+    path = tmp_path / "progress.json"
+    assert read_step(path) is None
+    report = StepReporter(path, min_interval=3600.0)
+    report("held-out PSNR", 0, 3, "view")
+    report("held-out PSNR", 1, 3, "view")  # same step within the interval: not written
+    assert read_step(path)["n"] == 0
+    report("held-out PSNR", 3, 3, "view")  # the step's end is always written
+    assert read_step(path)["n"] == 3
+    report("mesh", note="no count")  # a new step is always written
+    assert read_step(path) == {"step": "mesh", "n": 0, "total": None, "unit": "it",
+                               "note": "no count"}
+    sink = io.StringIO()
+    bar = tqdm(file=sink, mininterval=0)
+    display = StepDisplay(bar)
+    display.start("run")
+    StepReporter(path)("train", 12.5, 30.0, "s", note="it 400")
+    display.poll(path)
+    assert (bar.desc, bar.n, bar.total, bar.unit) == ("train", 12.5, 30.0, "s")
+    assert "it 400" in sink.getvalue()
+    StepReporter(path)("mesh")
+    display.poll(path)
+    assert (bar.desc, bar.n, bar.total) == ("mesh", 0, None)
+    bar.close()
+
+
+def test_wait_watches_the_run_and_kills_it_at_the_timeout():
+    import subprocess
+    import sys
+
+    from neus_l0.bench.runner import _wait
+
+    calls = []
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(1.2)"])
+    assert _wait(proc, None, lambda: calls.append(1), every=0.1) == 0
+    assert len(calls) >= 3
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    assert _wait(proc, 0.5, None, every=0.1) is None
+    assert proc.returncode is not None  # killed and reaped
 
 
 def test_split_views_holds_out_every_kth():

@@ -5,6 +5,7 @@ from pathlib import Path
 import pytest
 
 from neus_l0.config import (
+    CONFS_DIR,
     SAMPLERS,
     Config,
     config_from_dict,
@@ -36,9 +37,62 @@ def test_wmask_and_womask_match_neus():
     assert (wo.model.background.layers, wo.model.background.hidden) == (8, 256)
 
 
-@pytest.mark.parametrize("spec", ["wmask", "confs/wmask.yaml", "wmask.yaml"])
-def test_conf_spellings(spec):
-    assert resolve_conf_path(spec).name == "wmask.yaml"
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("spec", ["wmask", "confs/wmask.yaml", "wmask.yaml", "./confs/wmask.yaml",
+                                  "neus_l0/confs/wmask.yaml"])
+@pytest.mark.parametrize("where", ["repo", "elsewhere"])
+def test_conf_spellings(spec, where, tmp_path, monkeypatch):
+    monkeypatch.chdir(ROOT if where == "repo" else tmp_path)
+    path = resolve_conf_path(spec)
+    assert path.name == "wmask.yaml"
+    assert path.resolve() == (ROOT / "confs" / "wmask.yaml").resolve()
+
+
+def test_confs_at_the_repository_root_are_the_only_copy():
+    assert CONFS_DIR.resolve() == (ROOT / "confs").resolve()
+    assert {p.stem for p in CONFS_DIR.glob("*.yaml")} >= {"demo", "fast", "wmask", "womask"}
+    assert not list((ROOT / "neus_l0").rglob("*.yaml"))
+
+
+def test_absolute_and_relative_paths_are_read_as_they_are(tmp_path, monkeypatch):
+    mine = tmp_path / "sub" / "demo.yaml"  # named like a built-in, but another file
+    mine.parent.mkdir()
+    mine.write_text("train: {iters: 11}\n")
+    assert load_config(str(mine)).train.iters == 11
+    monkeypatch.chdir(tmp_path)
+    assert load_config("sub/demo.yaml").train.iters == 11
+    assert load_config("./sub/demo.yaml").train.iters == 11
+    with pytest.raises(ConfigError, match="no such config file"):
+        load_config(str(tmp_path / "missing.yaml"))
+    with pytest.raises(ConfigError, match="no such config file"):
+        load_config("other/demo.yaml")  # only confs/ prefixes name built-ins
+
+
+@pytest.mark.slow
+def test_the_wheel_ships_the_configs(tmp_path):
+    """A non-editable install finds the built-in configs inside the package."""
+    import subprocess
+    import sys
+    import zipfile
+
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps",
+                    "--no-build-isolation", str(ROOT), "-w", str(tmp_path / "dist")],
+                   check=True, cwd=tmp_path)
+    (wheel,) = (tmp_path / "dist").glob("neus_l0-*.whl")
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(tmp_path / "site")
+    assert sorted(p.name for p in (tmp_path / "site" / "neus_l0" / "confs").glob("*.yaml")) == \
+        sorted(p.name for p in (ROOT / "confs").glob("*.yaml"))
+    code = ("import neus_l0.config as c; print(c.CONFS_DIR); "
+            "print(c.resolve_conf_path('demo')); print(c.load_config('demo').train.iters)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, check=True, text=True,
+                         capture_output=True, env={"PYTHONPATH": str(tmp_path / "site"),
+                                                   "PATH": "/usr/bin:/bin"}).stdout.split()
+    assert out[0] == str(tmp_path / "site" / "neus_l0" / "confs")
+    assert out[1] == str(tmp_path / "site" / "neus_l0" / "confs" / "demo.yaml")
+    assert out[2] == str(load_config("demo").train.iters)
 
 
 def test_conf_path(tmp_path):

@@ -11,7 +11,14 @@ checkpoints/, metrics.jsonl, run.json):
   sample distance, and ``curve``: Chamfer against training time, one point per snapshot
   and the final model's last (see `execute`);
 * ``status.json``: ``{"status": "done" | "failed", "row": {...}}``, the run's results row
-  (see `neus_l0.bench.results.COLUMNS`), written last.
+  (see `neus_l0.bench.results.COLUMNS`), written last;
+* ``progress.json``: the step the run is at (`neus_l0.bench.progress`), which the sweep
+  shows as a progress bar while it waits.
+
+Held-out PSNR is bounded: each held-out view is rendered at a pixel stride, the config's
+``train.val_downscale`` or more, chosen so that at most `RunSpec.psnr_pixels` pixels of it are
+rendered (`psnr_stride`); the cost is at most ``views x psnr_pixels`` rays whatever the image
+size.
 
 A process per run gives per-run peak memory (``ru_maxrss`` of the process itself, or
 ``torch.cuda.max_memory_allocated`` on a GPU) and isolates crashes: the sweep records a run
@@ -59,7 +66,7 @@ class RunSpec:
             uses the same config even if the YAML file changes meanwhile; None: resolve
             `conf` and `overrides` in the run's process.
         device: ``cpu`` or ``cuda``.
-        threads: torch CPU threads in the run's process (None: torch's default).
+        threads: torch CPU threads in the run's process (None or 0: torch's default).
         holdout: hold out every K-th view (0: none; see `neus_l0.bench.holdout`).
         resolution: marching-cubes resolution.
         eval_density: Chamfer sampling density and thinning radius (world units).
@@ -68,6 +75,7 @@ class RunSpec:
             mesh is extracted and scored after training (``curve`` in eval.json).
         label: the run's name in a comparison (e.g. an arm of `tools/bench_fast_vs_neus.py`);
             informative only.
+        psnr_pixels: at most this many pixels rendered per held-out view (`psnr_stride`).
     """
 
     name: str
@@ -88,6 +96,7 @@ class RunSpec:
     config: dict | None = None
     snapshots: list[float] = dataclasses.field(default_factory=list)
     label: str | None = None
+    psnr_pixels: int = 10000
 
     @property
     def run_dir(self) -> Path:
@@ -124,13 +133,35 @@ class RunSpec:
                 "seed": self.seed, "run_dir": f"runs/{self.name}"}
 
 
-def heldout_psnr(model, scene, views: list[int], cfg, iteration: int) -> list[float]:
-    """PSNR of the rendered held-out `views` against their images, at the validation downscale.
+def psnr_stride(height: int, width: int, base: int, pixels: int) -> int:
+    """The smallest pixel stride >= `base` that leaves at most `pixels` pixels of a view.
 
-    Rendered as `neus_l0.train.validation_image` does (every ``cfg.train.val_downscale``-th
-    pixel, no jitter). With masks, the error is averaged over foreground pixels only (the
-    no-background model renders black where the images show the backdrop); without masks,
-    over the whole image.
+    Every stride-th pixel in each direction is rendered: ``ceil(height / s) * ceil(width /
+    s)`` pixels.
+
+    Raises:
+        ValueError: `pixels` below 1.
+    """
+    if pixels < 1:
+        raise ValueError(f"pixel budget {pixels}: must be at least 1")
+    s = max(1, int(base))
+    while math.ceil(height / s) * math.ceil(width / s) > pixels:
+        s += 1
+    return s
+
+
+def heldout_psnr(model, scene, views: list[int], cfg, iteration: int, pixels: int = 10000,
+                 report=None) -> list[float]:
+    """PSNR of the rendered held-out `views` against their images, on a bounded pixel grid.
+
+    Rendered as `neus_l0.train.validation_image` does (no jitter), on every s-th pixel with
+    ``s = psnr_stride(H, W, cfg.train.val_downscale, pixels)``: at least the validation
+    downscale, more where a view would have over `pixels` pixels. With masks, the error is
+    averaged over foreground pixels only (the no-background model renders black where the
+    images show the backdrop); without masks, over the whole image.
+
+    Args:
+        report: a `neus_l0.bench.progress.StepReporter` (or None), told after each view.
 
     Returns:
         one PSNR (dB) per view.
@@ -141,10 +172,13 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int) -> list[fl
     from neus_l0.schedule import cos_anneal_ratio
     from neus_l0.train import validation_views
 
-    ds = max(1, cfg.train.val_downscale)
+    ds = psnr_stride(scene.height, scene.width, cfg.train.val_downscale, pixels)
+    step = f"held-out PSNR (1/{ds} of each axis)"
     out = []
     with torch.no_grad():
-        for v in views:
+        for i, v in enumerate(views):
+            if report is not None:
+                report(step, i, len(views), "view")
             o, d, rgb = validation_views(scene, v, ds)
             img = render_image(model, o, d, cfg.render, cfg.sampler,
                                cos_anneal_ratio(iteration, cfg.train.anneal_end))["color"]
@@ -154,7 +188,31 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int) -> list[fl
                 err = err[fg] if bool(fg.any()) else err
             mse = float(err.mean())
             out.append(-10.0 * math.log10(max(mse, 1e-10)))
+    if report is not None:
+        report(step, len(views), len(views), "view")
     return out
+
+
+class TrainProgress:
+    """A training hook that reports the loop's progress against the budget (returns nothing).
+
+    Args:
+        report: a `neus_l0.bench.progress.StepReporter`.
+        budget_s: the run's wall-clock budget.
+    """
+
+    def __init__(self, report, budget_s: float):
+        self.report, self.budget_s = report, float(budget_s)
+        self.t0 = time.monotonic()
+
+    def start(self) -> None:
+        self.t0 = time.monotonic()
+        self.report("train", 0, self.budget_s, "s")
+
+    def __call__(self, iteration: int, model, scene, cfg) -> dict:
+        seconds = min(time.monotonic() - self.t0, self.budget_s)
+        self.report("train", round(seconds, 1), self.budget_s, "s", note=f"it {iteration}")
+        return {}
 
 
 def warm_up_torch() -> None:
@@ -187,7 +245,8 @@ def curve_point(seconds: float, iteration: int, score: dict | None, mesh_s: floa
 
 
 def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], final_iter: int,
-                    scale_mat, elapsed: dict[int, float], score_fn) -> list[dict]:
+                    scale_mat, elapsed: dict[int, float], score_fn,
+                    report=None) -> list[dict]:
     """Mesh and score every snapshot checkpoint except the final model's.
 
     Args:
@@ -197,6 +256,7 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         scale_mat: (4, 4) normalised -> world.
         elapsed: loop time (s) of each snapshot iteration (metrics.jsonl's ``elapsed``).
         score_fn: ``score_fn(mesh_path) -> report or None``.
+        report: a `neus_l0.bench.progress.StepReporter` (or None), told after each snapshot.
 
     Returns:
         curve points in iteration order; a snapshot whose mesh cannot be made (no surface
@@ -210,10 +270,13 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
 
     points = []
     seen = set()
+    todo = len({it for _, it, _ in snapshots if it != final_iter})
     for _, iteration, ckpt in snapshots:
         if iteration == final_iter or iteration in seen:
             continue
         seen.add(iteration)
+        if report is not None:
+            report("snapshots: mesh and score", len(seen) - 1, todo, "snapshot")
         model, _, _ = load_trained_model(spec.run_dir, spec.device, checkpoint=ckpt)
         t0 = time.monotonic()
         try:
@@ -241,13 +304,21 @@ def _snapshot_elapsed(run_dir: Path) -> dict[int, float]:
     return out
 
 
-def execute(spec: RunSpec, progress: bool = False) -> dict:
+def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     """Run `spec` in this process and return its done row (raises on failure).
 
     With `spec.snapshots`, eval.json's ``curve`` lists ``{seconds, iteration, accuracy,
     completeness, overall, mesh_s}`` per snapshot (seconds: the loop time when it was taken;
     mesh_s: its marching cubes) and ends with the final model (seconds: ``train_seconds``).
+
+    Args:
+        progress: the training loop's own tqdm bar.
+        report: a `neus_l0.bench.progress.StepReporter` told each step (None: a silent one).
     """
+    from neus_l0.bench.progress import StepReporter
+
+    report = report if report is not None else StepReporter(None)
+    report("load config and scene")
     cfg = spec.load_config()  # a bad config fails before torch loads
 
     import numpy as np
@@ -272,8 +343,10 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
     if spec.device == "cuda":
         torch.cuda.reset_peak_memory_stats()
 
+    ticker = TrainProgress(report, spec.budget_s)
+    ticker.start()
     result = train(train_scene, cfg, run_dir, device=spec.device, progress=progress,
-                   hooks=[hook] if hook else [], snapshots=spec.snapshots)
+                   hooks=[hook, ticker] if hook else [ticker], snapshots=spec.snapshots)
     timings["train_s"] = result.seconds
     peak_rss = _peak_rss_mb()
     peak_gpu = (torch.cuda.max_memory_allocated() / 2**20 if spec.device == "cuda" else None)
@@ -282,10 +355,12 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
     model, _, _ = load_trained_model(run_dir, spec.device)
     sample_dist = None
     if hook is not None:
+        report("final sample distance")
         with torch.no_grad():
             sample_dist = hook(result.iteration, model, train_scene.to(spec.device),
                                cfg, force=True)["sample_dist"]
     t_extract = time.monotonic()
+    report(f"mesh: marching cubes {spec.resolution}^3", note="no count; see the time")
     mesh = extract_mesh(model, np.asarray(full.scale_mat), resolution=spec.resolution,
                         clean=True, device=spec.device)
     timings["extract_s"] = time.monotonic() - t_extract
@@ -301,17 +376,20 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
                           log=lambda msg: print(msg, file=sys.stderr, flush=True))
 
     t0 = time.monotonic()
+    report("score: Chamfer", note="no count; see the time")
     score = score_fn(mesh_path)
     timings["score_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
     curve = score_snapshots(spec, result.snapshots, result.iteration, full.scale_mat,
-                            _snapshot_elapsed(run_dir) if result.snapshots else {}, score_fn)
+                            _snapshot_elapsed(run_dir) if result.snapshots else {}, score_fn,
+                            report)
     curve.append(curve_point(result.seconds, result.iteration, score, timings["extract_s"]))
     timings["snapshots_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
-    psnrs = heldout_psnr(model, full.to(spec.device), test_views, cfg, result.iteration)
+    psnrs = heldout_psnr(model, full.to(spec.device), test_views, cfg, result.iteration,
+                         spec.psnr_pixels, report)
     timings["psnr_s"] = time.monotonic() - t0
 
     peak_mb = peak_gpu if peak_gpu is not None else peak_rss
@@ -330,6 +408,8 @@ def execute(spec: RunSpec, progress: bool = False) -> dict:
         "peak_rss_mb_train": peak_rss, "peak_rss_mb_total": _peak_rss_mb(),
         "peak_gpu_mb_train": peak_gpu, "sample_dist_rays": spec.sample_rays,
         "sample_dist_surface": surface.kind if surface is not None else None,
+        "psnr_stride": psnr_stride(full.height, full.width, cfg.train.val_downscale,
+                                   spec.psnr_pixels),
         "timings": timings, "torch_threads": torch.get_num_threads(),
         "curve": curve, "snapshots": [
             {"mark": m, "iteration": it, "checkpoint": str(Path(p).relative_to(run_dir))}
@@ -358,9 +438,11 @@ def main(argv: list[str] | None = None) -> int:
     if len(argv) != 1:
         print("usage: python -m neus_l0.bench.runner RUN_DIR/spec.json", file=sys.stderr)
         return 2
+    from neus_l0.bench.progress import PROGRESS_FILE, StepReporter
+
     spec = read_spec(argv[0])
     try:
-        row = execute(spec)
+        row = execute(spec, report=StepReporter(spec.run_dir / PROGRESS_FILE))
     except Exception as exc:  # recorded, never raised: the sweep goes on
         traceback.print_exc()
         msg = str(exc).splitlines()[0] if str(exc) else ""
@@ -379,13 +461,37 @@ def _last_line(path: Path) -> str:
     return lines[-1] if lines else ""
 
 
-def run_in_subprocess(spec: RunSpec, timeout: float | None = None) -> dict:
+def _wait(proc: subprocess.Popen, timeout: float | None, watch, every: float = 0.5) -> int | None:
+    """Wait for `proc`, calling `watch()` every `every` seconds; None if it timed out (killed)."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while True:
+        wait = every if deadline is None else min(every, max(0.0, deadline - time.monotonic()))
+        try:
+            return proc.wait(timeout=wait)
+        except subprocess.TimeoutExpired:
+            pass
+        if deadline is not None and time.monotonic() >= deadline:
+            proc.kill()
+            proc.wait()
+            return None
+        if watch is not None:
+            watch()
+
+
+def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None) -> dict:
     """Execute `spec` in a fresh Python process and return its row (never raises for the run).
 
     The run folder is emptied of an unfinished earlier attempt first; the process's output
     goes to ``log.txt`` in the run folder.
+
+    Args:
+        timeout: seconds after which the process is killed (None: no limit).
+        watch: called with the run's progress file (`neus_l0.bench.progress`) about twice a
+            second while the process runs, e.g. `StepDisplay.poll`.
     """
     import shutil
+
+    from neus_l0.bench.progress import PROGRESS_FILE
 
     run_dir = spec.run_dir
     if run_dir.exists():
@@ -395,13 +501,16 @@ def run_in_subprocess(spec: RunSpec, timeout: float | None = None) -> dict:
     atomic_write_json(spec_path, dataclasses.asdict(spec))
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     log = run_dir / "log.txt"
-    try:
-        with open(log, "w", encoding="utf-8") as f:
-            proc = subprocess.run([sys.executable, "-m", "neus_l0.bench.runner", str(spec_path)],
-                                  stdout=f, stderr=subprocess.STDOUT, env=env, timeout=timeout)
-        rc = proc.returncode
-    except subprocess.TimeoutExpired:
-        rc = None
+    progress_path = run_dir / PROGRESS_FILE
+    with open(log, "w", encoding="utf-8") as f:
+        proc = subprocess.Popen([sys.executable, "-m", "neus_l0.bench.runner", str(spec_path)],
+                                stdout=f, stderr=subprocess.STDOUT, env=env)
+        try:
+            rc = _wait(proc, timeout, None if watch is None else lambda: watch(progress_path))
+        except BaseException:  # e.g. Ctrl-C in the sweep: do not leave the run behind
+            proc.kill()
+            proc.wait()
+            raise
     status = run_dir / "status.json"
     if status.is_file():
         try:

@@ -38,7 +38,7 @@ from neus_l0.errors import NeusL0Error
 
 #: Settings that must match between invocations on the same sweep folder.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
-               "threads", "resolution", "eval_density", "sample_rays")
+               "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels")
 
 
 @dataclasses.dataclass
@@ -126,29 +126,129 @@ def check_settings(out_dir: Path, settings: dict) -> None:
     atomic_write_json(path, settings)
 
 
-def run_sweep(out_dir: str | Path, scenes: Sequence[str], samplers: Sequence[str],
-              budgets: Sequence[float], seeds: Sequence[int], *, conf: str = "wmask",
-              overrides: Sequence[str] = (), views: int = 49, width: int = 400,
-              height: int = 300, holdout: int = 8, device: str = "cpu",
-              threads: int | None = None, resolution: int = 256, eval_density: float = 0.2,
-              sample_rays: int = 256, backend: str = "local", progress: bool = True,
-              timeout: float | None = None,
-              on_row: Callable[[dict], None] | None = None) -> SweepOutcome:
-    """Run every (scene, sampler, budget, seed) not already done and write the results.
+#: What a sweep uses for the settings not given, by device. On a CPU: the `demo` config
+#: (NeuS's 8x256 `wmask` would spend a CPU's budget on a few hundred iterations), one torch
+#: thread per run (on a loaded machine torch's default of one thread per core made a run
+#: 25x slower), meshes at 128^3 and Chamfer sampled every 0.5 world units (the synthetic
+#: scenes' ground-truth point spacing): at 256^3 and the DTU protocol's 0.2, marching cubes
+#: and scoring took about 1 and 3 minutes per run on the 2-core dev machine
+#: (docs/BENCHMARKS.md). On CUDA: `fast`, torch's thread count, 256^3 and 0.2.
+DEVICE_DEFAULTS = {
+    "cpu": {"conf": "demo", "threads": 1, "resolution": 128, "eval_density": 0.5},
+    "cuda": {"conf": "fast", "threads": 0, "resolution": 256, "eval_density": 0.2},
+}
 
-    Args:
+
+def device_defaults(device: str) -> dict:
+    """`DEVICE_DEFAULTS` of ``cuda`` (any ``cuda:N``) or else ``cpu``."""
+    return dict(DEVICE_DEFAULTS["cuda" if str(device).startswith("cuda") else "cpu"])
+
+
+def default_conf(device: str) -> str:
+    """The config a sweep uses when none is named: ``fast`` on CUDA, ``demo`` on a CPU."""
+    return device_defaults(device)["conf"]
+
+
+@dataclasses.dataclass
+class SweepSpec:
+    """What a sweep runs: the grid, the config every run shares, and how runs are scored.
+
+    Attributes:
         out_dir: the sweep folder DIR (see the module docstring for its layout).
         scenes: built-in scene names or scene folders.
-        samplers, budgets, seeds: the grid (budgets in seconds).
-        conf, overrides: the base config shared by every run.
+        samplers: up-sampling draws (`neus_l0.config.SAMPLERS`).
+        budgets: wall-clock training budgets in seconds.
+        seeds: training seeds.
+        conf: the base config (name or YAML path) shared by every run.
+        overrides: ``key=value`` overrides of `conf`.
         views, width, height: size of synthesised built-in scenes.
         holdout: hold out every K-th view for PSNR (0: none).
-        device, threads: where runs train, and torch CPU threads per run (None: default).
-        resolution: marching-cubes resolution. eval_density: Chamfer sampling density.
+        device: where runs train (``cpu`` or ``cuda``).
+        threads: torch CPU threads per run (0: torch's default).
+        resolution: marching-cubes resolution.
+        eval_density: Chamfer sampling density (world units).
+            (`conf`, `threads`, `resolution`, `eval_density`: None picks `device_defaults`.)
         sample_rays: rays of the sample-distance hook.
+        psnr_pixels: at most this many pixels rendered per held-out view
+            (`neus_l0.bench.runner.psnr_stride`).
         backend: ``local`` (one run after another) or ``ray`` (Ray tasks).
-        progress: tqdm over the runs.
         timeout: seconds after which a run's process is killed (None: no limit).
+    """
+
+    out_dir: str | Path
+    scenes: Sequence[str]
+    samplers: Sequence[str]
+    budgets: Sequence[float]
+    seeds: Sequence[int] = (0,)
+    conf: str | None = None
+    overrides: Sequence[str] = ()
+    views: int = 49
+    width: int = 400
+    height: int = 300
+    holdout: int = 8
+    device: str = "cpu"
+    threads: int | None = None
+    resolution: int | None = None
+    eval_density: float | None = None
+    sample_rays: int = 256
+    psnr_pixels: int = 10000
+    backend: str = "local"
+    timeout: float | None = None
+
+    def __post_init__(self):
+        for key, value in device_defaults(self.device).items():
+            if getattr(self, key) is None:
+                setattr(self, key, value)
+        self.conf = str(self.conf)
+
+    def settings(self, config: dict) -> dict:
+        """What ``DIR/sweep.json`` records (`SHARED_KEYS` must match on a re-run)."""
+        return {
+            "config": config, "conf": self.conf, "overrides": list(self.overrides),
+            "views": self.views, "width": self.width, "height": self.height,
+            "holdout": self.holdout, "device": self.device, "threads": self.threads,
+            "resolution": self.resolution, "eval_density": self.eval_density,
+            "sample_rays": self.sample_rays, "psnr_pixels": self.psnr_pixels,
+        }
+
+    def run_spec(self, scene: str, folder: Path, sampler: str, budget: float, seed: int,
+                 config: dict) -> RunSpec:
+        """The `RunSpec` of one grid point, with the resolved base `config`."""
+        return RunSpec(name=run_name(scene, sampler, float(budget), int(seed)), scene=scene,
+                       scene_dir=str(folder), sampler=sampler, budget_s=float(budget),
+                       seed=int(seed), out_dir=str(Path(self.out_dir).resolve()),
+                       conf=self.conf, overrides=list(self.overrides),
+                       device=self.device, threads=self.threads, holdout=self.holdout,
+                       resolution=self.resolution, eval_density=self.eval_density,
+                       sample_rays=self.sample_rays, config=config,
+                       psnr_pixels=self.psnr_pixels)
+
+
+def plan_runs(spec: SweepSpec, resolved: Sequence[tuple[str, Path]],
+              config: dict) -> tuple[list[RunSpec], list[RunSpec]]:
+    """Every run of the grid, split into (to run, already done).
+
+    Samplers are innermost: the runs that are compared with each other run back to back and
+    so see the same machine load (which moves wall-clock budgets more than the sampler).
+    """
+    todo, done = [], []
+    for scene, folder in resolved:
+        for seed in spec.seeds:
+            for budget in spec.budgets:
+                for sampler in spec.samplers:
+                    run = spec.run_spec(scene, folder, sampler, budget, seed, config)
+                    (done if is_done(run.run_dir) else todo).append(run)
+    return todo, done
+
+
+def run_sweep(spec: SweepSpec, *, progress: bool = True,
+              on_row: Callable[[dict], None] | None = None) -> SweepOutcome:
+    """Run every (scene, sampler, budget, seed) of `spec` not already done; write the results.
+
+    Args:
+        spec: the sweep.
+        progress: tqdm bars: one over the runs, one for the running run's current step
+            (training, marching cubes, scoring, held-out views; `neus_l0.bench.progress`).
         on_row: called with each new row as its run finishes.
 
     Returns:
@@ -160,48 +260,39 @@ def run_sweep(out_dir: str | Path, scenes: Sequence[str], samplers: Sequence[str
     """
     from neus_l0.config import load_config, to_dict
 
-    out_dir = Path(out_dir).resolve()
+    out_dir = Path(spec.out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)
-    if backend not in ("local", "ray"):
-        raise NeusL0Error(f"--backend {backend}: choose local or ray")
+    if spec.backend not in ("local", "ray"):
+        raise NeusL0Error(f"--backend {spec.backend}: choose local or ray")
+    if spec.psnr_pixels < 1:
+        raise NeusL0Error(f"--psnr-pixels {spec.psnr_pixels}: must be at least 1")
     # The config is resolved once, here: user errors surface before any run, and every run
     # gets exactly this config even if the YAML file changes while the sweep runs.
-    base = load_config(conf, [*BENCH_OVERRIDES, *overrides])
-    settings = {
-        "config": to_dict(base), "conf": str(conf), "overrides": list(overrides),
-        "views": views, "width": width, "height": height, "holdout": holdout,
-        "device": device, "threads": threads, "resolution": resolution,
-        "eval_density": eval_density, "sample_rays": sample_rays,
-    }
-    check_settings(out_dir, settings)
-    resolved = [prepare_scene(s, out_dir, views, width, height, progress) for s in scenes]
+    config = to_dict(load_config(spec.conf, [*BENCH_OVERRIDES, *spec.overrides]))
+    check_settings(out_dir, spec.settings(config))
+    resolved = [prepare_scene(s, out_dir, spec.views, spec.width, spec.height, progress)
+                for s in spec.scenes]
     names = [n for n, _ in resolved]
     if len(set(names)) != len(names):
         raise NeusL0Error(f"--scenes: two scenes share a name ({', '.join(names)})")
-
-    specs, skipped = [], []
-    # Samplers innermost: the runs that are compared with each other run back to back and
-    # so see the same machine load (which moves wall-clock budgets more than the sampler).
-    for scene, folder in resolved:
-        for seed in seeds:
-            for budget in budgets:
-                for sampler in samplers:
-                    name = run_name(scene, sampler, float(budget), int(seed))
-                    spec = RunSpec(name=name, scene=scene, scene_dir=str(folder),
-                                   sampler=sampler, budget_s=float(budget), seed=int(seed),
-                                   out_dir=str(out_dir), conf=str(conf),
-                                   overrides=list(overrides), device=device, threads=threads,
-                                   holdout=holdout, resolution=resolution,
-                                   eval_density=eval_density, sample_rays=sample_rays,
-                                   config=settings["config"])
-                    (skipped if is_done(spec.run_dir) else specs).append(spec)
+    specs, skipped = plan_runs(spec, resolved, config)
     write_results(out_dir, collect_rows(out_dir))
+    ran = _execute(specs, out_dir, spec, len(skipped), progress, on_row)
+    return SweepOutcome(collect_rows(out_dir), ran, [s.name for s in skipped])
 
+
+def _execute(specs: list[RunSpec], out_dir: Path, spec: SweepSpec, n_skipped: int,
+             progress: bool, on_row: Callable[[dict], None] | None) -> list[str]:
+    """Run `specs` on the sweep's backend, with the progress bars; the names that ran."""
     from tqdm import tqdm
 
-    total = len(specs) + len(skipped)
-    bar = tqdm(total=total, initial=len(skipped), disable=not progress, unit="run",
-               desc="bench", dynamic_ncols=True)
+    from neus_l0.bench.progress import StepDisplay
+
+    bar = tqdm(total=len(specs) + n_skipped, initial=n_skipped, disable=not progress,
+               unit="run", desc="bench", dynamic_ncols=True, position=0)
+    step_bar = tqdm(total=None, disable=not progress or spec.backend != "local",
+                    dynamic_ncols=True, position=1, leave=False)
+    display = StepDisplay(step_bar)
     ran: list[str] = []
 
     def finished(row: dict, name: str) -> None:
@@ -213,18 +304,21 @@ def run_sweep(out_dir: str | Path, scenes: Sequence[str], samplers: Sequence[str
             on_row(row)
 
     try:
-        if backend == "local":
-            for spec in specs:
-                bar.set_description(f"bench {spec.name}")
-                finished(run_in_subprocess(spec, timeout), spec.name)
+        if spec.backend == "local":
+            for run in specs:
+                bar.set_description(f"bench {run.name}")
+                display.start(run.name)
+                watch = display.poll if progress else None
+                finished(run_in_subprocess(run, spec.timeout, watch), run.name)
         else:
             from neus_l0.bench.ray_backend import run_with_ray
 
             bar.set_description(f"bench ({len(specs)} Ray tasks)")
-            run_with_ray(specs, finished, timeout=timeout)
+            run_with_ray(specs, finished, timeout=spec.timeout)
     finally:
+        step_bar.close()
         bar.close()
-    return SweepOutcome(collect_rows(out_dir), ran, [s.name for s in skipped])
+    return ran
 
 
 def is_done(run_dir: Path) -> bool:

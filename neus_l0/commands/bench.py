@@ -39,9 +39,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--seeds", type=_list(int), default=[0], metavar="S1,S2",
                    help="seeds (default 0)")
     p.add_argument("--out", metavar="DIR", help="sweep folder")
-    p.add_argument("--conf", default="wmask",
-                   help="config shared by every run: demo, fast, wmask (default), womask or a "
-                        "YAML path")
+    p.add_argument("--conf", default=None,
+                   help="config shared by every run: demo, fast, wmask, womask or a YAML path "
+                        "(default: demo on a CPU, fast on CUDA)")
     p.add_argument("--views", type=int, default=49, help="views of synthesised scenes (49)")
     p.add_argument("--width", type=int, default=400, help="width of synthesised scenes (400)")
     p.add_argument("--height", type=int, default=300, help="height of synthesised scenes (300)")
@@ -53,19 +53,29 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--backend", default="local", choices=["local", "ray"],
                    help="local: one run after another (default); ray: Ray tasks")
     p.add_argument("--threads", type=int, default=None,
-                   help="torch CPU threads per run (default: torch's; use 1 on a shared CPU)")
-    p.add_argument("--resolution", type=int, default=256,
-                   help="marching-cubes resolution of each run's mesh (256)")
-    p.add_argument("--eval-density", type=float, default=0.2,
-                   help="Chamfer sampling density in world units (0.2, the DTU protocol)")
+                   help="torch CPU threads per run (default: 1 on a CPU, where torch's one per "
+                        "core slows a loaded machine down many times; 0: torch's default)")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="marching-cubes resolution of each run's mesh (default: 128 on a CPU, "
+                        "256 on CUDA)")
+    p.add_argument("--eval-density", type=float, default=None,
+                   help="Chamfer sampling density in world units (default: 0.5 on a CPU, the "
+                        "synthetic scenes' point spacing; 0.2, the DTU protocol, on CUDA)")
     p.add_argument("--sample-rays", type=int, default=256,
                    help="rays of the fine-sample distance probe (256)")
+    p.add_argument("--psnr-pixels", type=int, default=10000, metavar="N",
+                   help="held-out PSNR renders at most N pixels per held-out view: every s-th "
+                        "pixel, s the config's train.val_downscale or larger (default 10000; "
+                        "e.g. a 400x300 view at s=4, 100x75); the cost is at most views x N "
+                        "rays")
     p.add_argument("--timeout", type=float, default=None,
                    help="kill a run's process after this many seconds (default: no limit)")
     p.add_argument("--plot-only", metavar="DIR", default=None,
                    help="only redraw DIR/plots/ from DIR/results.json")
     p.add_argument("--no-plots", action="store_true", help="do not draw DIR/plots/")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bars (by default: one over the runs and one for the "
+                        "running run's step: training, marching cubes, scoring, held-out views)")
     accept_overrides(p)
     return p
 
@@ -102,19 +112,27 @@ def run(args: argparse.Namespace) -> int:
     if owned:
         raise NeusL0Error(f"{', '.join(owned)}: set by the sweep (use --samplers, --seeds, "
                           "--seconds)")
-    if args.resolution < 8:
+    if args.resolution is not None and args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
+    if args.threads is not None and args.threads < 0:
+        raise NeusL0Error(f"--threads {args.threads}: must be 0 (torch's default) or more")
+    if args.psnr_pixels < 1:
+        raise NeusL0Error(f"--psnr-pixels {args.psnr_pixels}: must be at least 1")
 
-    from neus_l0.bench.sweep import run_sweep
+    from neus_l0.bench.sweep import SweepSpec, device_defaults, run_sweep
 
-    device = pick_device(args.device)
-    outcome = run_sweep(
-        args.out, args.scenes, args.samplers, args.seconds, args.seeds, conf=args.conf,
-        overrides=args.overrides, views=args.views, width=args.width, height=args.height,
-        holdout=args.holdout, device=device, threads=args.threads,
-        resolution=args.resolution, eval_density=args.eval_density,
-        sample_rays=args.sample_rays, backend=args.backend, progress=not args.quiet,
-        timeout=args.timeout)
+    spec = SweepSpec(
+        out_dir=args.out, scenes=args.scenes, samplers=args.samplers, budgets=args.seconds,
+        seeds=args.seeds, conf=args.conf, overrides=args.overrides, views=args.views,
+        width=args.width, height=args.height, holdout=args.holdout,
+        device=pick_device(args.device), threads=args.threads, resolution=args.resolution,
+        eval_density=args.eval_density, sample_rays=args.sample_rays,
+        psnr_pixels=args.psnr_pixels, backend=args.backend, timeout=args.timeout)
+    chosen = [f"--{k.replace('_', '-')} {getattr(spec, k)}" for k in device_defaults(spec.device)
+              if getattr(args, k) is None]
+    if chosen and not args.quiet:
+        print(f"bench: {spec.device} defaults: {' '.join(chosen)}")
+    outcome = run_sweep(spec, progress=not args.quiet)
     failed = [r for r in outcome.rows if r["status"] != "done"]
     print(f"{len(outcome.ran)} runs done now, {len(outcome.skipped)} skipped (done before), "
           f"{len(failed)} failed in {args.out}")

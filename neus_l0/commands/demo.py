@@ -15,7 +15,7 @@ DEMO_RESOLUTION = 96
 #: `train.max_seconds=...` is given on the command line).
 DEMO_BUDGET_S = 280.0
 DEMO_RESERVE_S = 75.0
-#: Training config of the demo (`neus_l0/confs/demo.yaml`).
+#: Training config of the demo (`confs/demo.yaml`).
 DEMO_CONF = "demo"
 
 
