@@ -206,3 +206,33 @@ def synchronize(device: torch.device) -> None:
     """Wait for the device's queued work (CUDA); nothing on the CPU."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+class TensorBoard(TrainingCallback):
+    """TensorBoard events in the run folder (``tensorboard --logdir RUN``): the losses,
+    s, PSNR, learning rate, samples per ray, iterations per second, validation images."""
+
+    SCALARS = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "lr", "its_per_s")
+
+    def __init__(self) -> None:
+        self.logger = None
+
+    def on_start(self, loop: TrainLoop) -> None:
+        from neus_l0.tensorboard_log import TensorBoardLogger
+
+        self.logger = TensorBoardLogger(loop.run_dir, purge_step=loop.iteration or None)
+
+    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+        values = {k: metrics[k] for k in self.SCALARS if k in metrics}
+        values["s"] = 1.0 / metrics["s"] if metrics.get("s") else float("nan")
+        rays = metrics.get("rays") or loop.rays
+        values["samples_per_ray"] = metrics["samples"] / max(rays, 1)
+        self.logger.scalars(loop.iteration, values)
+
+    def image(self, step: int, tag: str, rgb) -> None:
+        """A `Validation` sink."""
+        if self.logger is not None:
+            self.logger.image(step, tag, rgb)
+
+    def on_end(self, loop: TrainLoop) -> None:
+        self.logger.close()

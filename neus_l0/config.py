@@ -285,6 +285,8 @@ class TrainConfig:
     amp: str = "off"
     """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
     scaler and fused Adam); ignored on the CPU."""
+    tensorboard: bool = True
+    """Write TensorBoard events into the run folder (`tensorboard --logdir RUN`)."""
     eikonal_fraction: float = 1.0
     """Fraction of the samples (drawn at random each step) that the Eikonal term averages
     over; 1: all samples within radius 1.2 (NeuS)."""

@@ -37,6 +37,7 @@ from neus_l0.callbacks import (
     MetricsFile,
     ProgressBar,
     Snapshots,
+    TensorBoard,
     TrainingCallback,
     Validation,
     synchronize,
@@ -55,10 +56,12 @@ from neus_l0.data.rays import random_pixel_rays, random_rays
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields import NeuSModel, build_model
+from neus_l0.interrupt import StopOnSignal
 from neus_l0.losses import neus_loss
 from neus_l0.occupancy import OccupancyGrid
 from neus_l0.pixel_pool import PixelPool, reachable_pixels
 from neus_l0.rendering import RayBounds, render_rays
+from neus_l0.runlock import RunLock
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
 from neus_l0.validation import validation_image, validation_views  # noqa: F401 (moved)
 
@@ -81,6 +84,9 @@ class TrainResult:
         stopped_early: whether `train.max_seconds` ended the run before `train.iters`.
         snapshots: one ``(mark, iteration, checkpoint)`` per snapshot mark of this call, in
             mark order (marks served by the same checkpoint repeat it).
+        signal: ``SIGTERM`` / ``SIGINT`` when one stopped the run (after finishing the step
+            and writing its checkpoint), else None.
+        exit_code: the shell's code for that signal (143, 130), else 0.
     """
 
     run_dir: Path
@@ -90,6 +96,8 @@ class TrainResult:
     seconds: float
     stopped_early: bool
     snapshots: list[tuple[float, int, Path]] = dataclasses.field(default_factory=list)
+    signal: str | None = None
+    exit_code: int = 0
 
 
 def make_model(cfg: Config, device: str | torch.device = "cpu") -> NeuSModel:
@@ -416,11 +424,13 @@ def read_metrics(loop: TrainLoop, acc: Tensor, steps: int, last: Tensor,
     return metrics
 
 
-def default_callbacks(progress: bool, hooks: Sequence[Hook],
+def default_callbacks(cfg: Config, progress: bool, hooks: Sequence[Hook],
                       snapshots: Sequence[float]) -> list[TrainingCallback]:
     """The loop's own bookkeeping, in the order it runs at each point."""
-    return [HookCallback(hooks), MetricsFile(), ProgressBar(progress), Validation(),
-            Checkpoints(), Snapshots(snapshots)]
+    board = [TensorBoard()] if cfg.train.tensorboard else []
+    sinks = [board[0].image] if board else []
+    return [HookCallback(hooks), MetricsFile(), *board, ProgressBar(progress),
+            Validation(sinks), Checkpoints(), Snapshots(snapshots)]
 
 
 def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.device = "cpu",
@@ -457,12 +467,21 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
             a negative or non-finite snapshot mark.
     """
     try:
-        own = default_callbacks(progress, hooks, snapshots)
+        own = default_callbacks(cfg, progress, hooks, snapshots)
     except ValueError as exc:
         raise NeusL0Error(str(exc)) from None
-    loop = build_loop(scene, cfg, Path(run_dir), torch.device(device), resume)
+    if Path(run_dir).exists() and not Path(run_dir).is_dir():
+        raise NeusL0Error(f"{run_dir}: is a file, not a run folder (choose another --out)")
+    with RunLock(run_dir), StopOnSignal() as stop:
+        loop = build_loop(scene, cfg, Path(run_dir), torch.device(device), resume)
+        return _run_loop(loop, own + list(callbacks), stop_at, stop)
+
+
+def _run_loop(loop: TrainLoop, cbs: list[TrainingCallback], stop_at: int | None,
+              stop: StopOnSignal) -> TrainResult:
+    """The loop itself: restore is done; step, log, validate / checkpoint, stop."""
+    cfg = loop.cfg
     _write_run_files(loop)
-    cbs = own + list(callbacks)
     t = cfg.train
     acc = torch.zeros(len(METRIC_NAMES), device=loop.device)
     steps, stopped_early = 0, False
@@ -494,7 +513,7 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
             cb.after_step(loop)
         # stop
         over_time = t.max_seconds and loop.clock.elapsed() > t.max_seconds
-        if (over_time or (stop_at is not None and loop.iteration >= stop_at)) \
+        if (over_time or stop.requested or (stop_at is not None and loop.iteration >= stop_at)) \
                 and loop.iteration < t.iters:
             stopped_early = True
             break
@@ -502,9 +521,11 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
         cb.on_end(loop)
     if loop.last_checkpoint != checkpoint_path(loop.run_dir, loop.iteration):
         loop.save()
-    snaps = next((cb.taken for cb in own if isinstance(cb, Snapshots)), [])
+    snaps = next((cb.taken for cb in cbs if isinstance(cb, Snapshots)), [])
     return TrainResult(loop.run_dir, loop.iteration, loop.last_checkpoint,
-                       _last_metrics(loop.run_dir), loop.clock.elapsed(), stopped_early, snaps)
+                       _last_metrics(loop.run_dir), loop.clock.elapsed(), stopped_early, snaps,
+                       signal=stop.signal_name if stop.requested else None,
+                       exit_code=stop.exit_code)
 
 
 def _last_metrics(run_dir: Path) -> dict:

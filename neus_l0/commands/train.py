@@ -56,8 +56,14 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.data, downscale=cfg.data.downscale, device=device)
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
                    progress=not args.quiet)
+    if result.signal:
+        print(f"stopped by {result.signal} at iteration {result.iteration}; checkpoint "
+              f"{result.checkpoint} written; continue with: neus-l0 train {args.data} "
+              f"--out {run_dir} --resume")
+        return result.exit_code
     state = "stopped at the time budget" if result.stopped_early else "done"
     print(f"{state}: {result.iteration} iterations in {result.seconds:.0f} s; "
           f"checkpoint {result.checkpoint}")
-    print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/)")
+    print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/, "
+          f"TensorBoard events: tensorboard --logdir {run_dir})")
     return 0
