@@ -11,8 +11,8 @@ first. A file whose *content* is bad -- it does not unpickle (truncated, overwri
 the checkpoint keys, or holds NaN/inf in the model or optimiser state (which
 `save_checkpoint` never writes, so the file was damaged afterwards) -- is renamed to
 ``<name>.corrupt`` (kept for inspection, no longer listed) as soon as an older checkpoint
-loads, and one line on stderr names both. Failures that say nothing about the file (it
-cannot be opened, the process ran out of memory, a module needed by the pickle is missing)
+loads, and one line on stderr names both. Failures that say nothing about the content (the
+file is missing or not readable, memory ran out, a module needed by the pickle is missing)
 stop the search with the error instead. When every checkpoint is bad nothing is renamed:
 the error names the newest one and why.
 """
@@ -110,13 +110,14 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     Raises:
         CorruptCheckpointError: the content is bad (does not unpickle, missing keys,
             NaN/inf in the model or optimiser).
-        NeusL0Error: the file cannot be read for another reason (missing, no permission,
-            out of memory, a module the pickle names is missing).
+        NeusL0Error: the file cannot be read for another reason (missing, no permission, a
+            folder, out of memory, a module the pickle names is missing).
     """
     path = Path(path)
     try:
         state = torch.load(path, map_location=map_location, weights_only=False)
-    except (OSError, MemoryError, ImportError, torch.OutOfMemoryError) as exc:
+    except (FileNotFoundError, PermissionError, IsADirectoryError, MemoryError, ImportError,
+            torch.OutOfMemoryError) as exc:
         raise NeusL0Error(f"{path}: cannot read checkpoint ({_first_line(exc)})") from None
     except Exception as exc:  # noqa: BLE001 - truncated zip, unpickling errors, EOF, ...
         raise CorruptCheckpointError(f"{path}: cannot read checkpoint "
