@@ -45,7 +45,8 @@ from neus_l0.callbacks import (
 from neus_l0.checkpoint import (
     checkpoint_path,
     latest_checkpoint,
-    load_checkpoint,
+    load_newest_checkpoint,
+    load_trained_model,  # noqa: F401 (its home is neus_l0.checkpoint)
     prune_checkpoints,
     restore_training,
     rng_state,
@@ -362,13 +363,13 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
         NeusL0Error: nothing to resume, an existing run without `resume`, or a checkpoint
             that does not fit.
     """
-    ckpt = latest_checkpoint(run_dir)
-    if resume and ckpt is None:
-        raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
-    if not resume and ckpt is not None:
+    if not resume and latest_checkpoint(run_dir) is not None:
         raise NeusL0Error(f"{run_dir}: already holds checkpoints; pass --resume to continue "
                           "or choose another --out")
-    state = load_checkpoint(ckpt, map_location=device) if resume else None
+    found = load_newest_checkpoint(run_dir, map_location=device) if resume else None
+    if resume and found is None:
+        raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
+    ckpt, state = found if found is not None else (None, None)
     _check_scene(scene, cfg)
     scene = scene.to(device)
     model = make_model(cfg, device)
@@ -538,27 +539,3 @@ def _last_metrics(run_dir: Path) -> dict:
         if "loss" in m:
             return m
     return {}
-
-
-def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
-                       checkpoint: str | Path | None = None) -> tuple[NeuSModel, Config, dict]:
-    """The networks of a finished (or interrupted) run.
-
-    Returns:
-        model (eval mode), config, and the checkpoint dict without the heavy states
-        (``iteration``, ``scale_mat``, ...).
-
-    Raises:
-        NeusL0Error: no checkpoint, or an unusable one.
-    """
-    path = Path(checkpoint) if checkpoint else latest_checkpoint(run_dir)
-    if path is None:
-        raise NeusL0Error(f"{run_dir}: no checkpoints/ckpt_*.pt (train first)")
-    state = load_checkpoint(path, map_location=device)
-    cfg = config_from_dict(state["config"])
-    model = make_model(cfg, device)
-    model.load_state_dict(state["model"])
-    model.eval()
-    info = {k: v for k, v in state.items() if k not in ("model", "optimizer", "rng")}
-    info["path"] = path
-    return model, cfg, info

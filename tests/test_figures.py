@@ -29,11 +29,12 @@ def _write_results(root, rows):
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
     """A bench folder: the demo scene (6 views, 80x60) and two runs of 2 iterations each."""
+    from neus_l0.checkpoint import load_trained_model
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
     from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model, train
+    from neus_l0.train import train
 
     root = tmp_path_factory.mktemp("bench")
     scene_dir = root / "scenes" / "demo"

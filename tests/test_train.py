@@ -7,14 +7,19 @@ import numpy as np
 import pytest
 import torch
 
-from neus_l0.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
+from neus_l0.checkpoint import (
+    latest_checkpoint,
+    list_checkpoints,
+    load_checkpoint,
+    load_trained_model,
+)
 from neus_l0.config import load_config
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.rendering import SAMPLERS
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
-from neus_l0.train import load_trained_model, train
+from neus_l0.train import train
 
 # A tiny frequency-encoded MLP on top of confs/demo.yaml (whose SDF is a hash grid since the
 # "Speed" work; the demo tests below run the hash grid itself).

@@ -35,10 +35,11 @@ def train_and_mesh(scene_dir: Path, run_dir: Path, conf: str, overrides: list[st
                    max_seconds: float, resolution: int) -> dict:
     """Train on `scene_dir` into `run_dir` and extract ``run_dir/mesh.ply`` (scene's world)."""
     from neus_l0.atomic import atomic_write_json
+    from neus_l0.checkpoint import load_trained_model
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model, train
+    from neus_l0.train import train
 
     done = run_dir / "chain_run.json"
     if done.is_file():

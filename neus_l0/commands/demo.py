@@ -77,21 +77,21 @@ def score_demo_mesh(mesh_path, scene_dir) -> dict:
 def run(args: argparse.Namespace) -> int:
     import json
     import time
-    from pathlib import Path
 
     import numpy as np
     import torch
 
     from neus_l0.atomic import atomic_write_json
-    from neus_l0.checkpoint import latest_checkpoint
+    from neus_l0.checkpoint import latest_checkpoint, load_trained_model
+    from neus_l0.commands._paths import check_output_dir
     from neus_l0.commands.train import pick_device
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
     from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model, train
+    from neus_l0.train import train
 
-    out = Path(args.out)
+    out = check_output_dir(args.out, "--out")
     out.mkdir(parents=True, exist_ok=True)
     device = pick_device(args.device)
     threads = demo_threads(args.threads)

@@ -42,13 +42,13 @@ def pick_device(name: str | None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
 
+    from neus_l0.commands._paths import check_output_dir
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.train import train
 
-    run_dir = Path(args.out)
+    run_dir = check_output_dir(args.out, "--out")
     conf = run_dir / "config.yaml" if args.resume and (run_dir / "config.yaml").is_file() \
         else args.conf
     cfg = load_config(conf, args.overrides)

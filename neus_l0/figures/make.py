@@ -189,8 +189,8 @@ def make_figures(scene_dir: Path, runs: dict[str, BenchRun], out: Path,
 
 
 def _ray_figure(scene_dir, runs, features, cams, out, what, pit, log) -> list[FigureEntry]:
+    from neus_l0.checkpoint import load_trained_model
     from neus_l0.figures.ray_weights import find_pit_ray, plot_ray_weights, ray_profile
-    from neus_l0.train import load_trained_model
 
     if not any(f["kind"] == "pit" for f in features) and pit is None:
         log("  no pit in features.json: no ray figure")
