@@ -52,7 +52,7 @@ from neus_l0.checkpoint import (
     rng_state,
     save_checkpoint,
 )
-from neus_l0.config import Config, config_from_dict, dump_config, to_dict
+from neus_l0.config import Config, dump_config, to_dict
 from neus_l0.data.rays import random_pixel_rays, random_rays
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
