@@ -201,7 +201,7 @@ def test_cull_removes_parts_outside_the_masks_and_keeps_the_object(scene):
 
 
 def test_cull_rule_details(scene):
-    from neus_l0.evaluation._scene import read_masks, read_world_mats
+    from neus_l0.data.cameras import read_masks, read_world_mats
 
     proj = read_world_mats(scene)
     masks = [dilate_mask(m, 0) for m in read_masks(scene, len(proj))]

@@ -170,20 +170,17 @@ def draw_comparison(scene_dir, mesh, path, score: dict | None):
     from pathlib import Path
 
     import cv2
-    import numpy as np
     import trimesh
 
+    from neus_l0.data.cameras import read_world_mats, scale_projection
     from neus_l0.preview import side_by_side, splat_render
 
     scene_dir = Path(scene_dir)
-    cams = np.load(scene_dir / "cameras_sphere.npz")
     images = sorted((scene_dir / "image").glob("*.png"))
     img = cv2.imread(str(images[0]))[..., ::-1] / 255.0
     h, w = img.shape[:2]
     up = max(1, 300 // w)  # render the meshes at about 300 pixels wide
-    S = np.diag([up, up, 1.0])
-    S[:2, 2] = (up - 1) / 2.0  # pixel centres stay at integers after upscaling
-    P = S @ cams["world_mat_0"][:3, :4]
+    P = scale_projection(read_world_mats(scene_dir)[0], up)
     gt = trimesh.load(scene_dir / "gt_mesh.ply", force="mesh")
     gt_shade, _ = splat_render(gt, P, w * up, h * up)
     rec_shade, _ = splat_render(mesh, P, w * up, h * up)

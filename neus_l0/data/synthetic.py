@@ -23,10 +23,10 @@ import torch
 
 from neus_l0.atomic import atomic_write, atomic_write_json
 from neus_l0.data.cameras import (
-    camera_z_depth,
     cap_centres,
     intrinsics_to_fit,
     look_at,
+    pixel_indices,
     projection_matrix,
     sphere_scale_mat,
 )
@@ -112,11 +112,9 @@ def _visible(points: np.ndarray, world_mats: np.ndarray, depths: np.ndarray,
     seen = np.zeros(len(points), bool)
     f = K[0, 0]
     for P, D in zip(world_mats, depths, strict=True):
-        xy, z = camera_z_depth(P, points)
-        px = np.rint(xy).astype(np.int64, copy=False) if len(xy) else xy
-        inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)
-        idx = np.nonzero(inside & ~seen)[0]
-        d = D[px[idx, 1], px[idx, 0]]
+        col, row, z = pixel_indices(P, points, H, W)
+        idx = np.nonzero((col >= 0) & ~seen)[0]
+        d = D[row[idx], col[idx]]
         seen[idx] = z[idx] <= d + 2.0 * z[idx] / f + 1e-3 * z[idx]
     return seen
 
