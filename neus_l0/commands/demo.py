@@ -84,10 +84,10 @@ def run(args: argparse.Namespace) -> int:
 
     from neus_l0.atomic import atomic_write_json
     from neus_l0.checkpoint import latest_checkpoint
-    from neus_l0.commands.train import pick_device
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
+    from neus_l0.device import pick_device
     from neus_l0.mesh import export_mesh, extract_mesh
     from neus_l0.train import load_trained_model, train
 

@@ -172,6 +172,7 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         scale_mat: (4, 4) normalised -> world (uniform scale).
         sampler: the sampler the run trained with (its all-round fine samples are drawn).
     """
+    from neus_l0.data.cameras import to_normalised, world_scale
     from neus_l0.rendering import (
         coarse_z_vals,
         draw_fine_samples,
@@ -183,9 +184,9 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
     from neus_l0.sampling import maxblur
 
     r = cfg.render
-    s = float(scale_mat[0, 0])
-    o = torch.as_tensor((origin - scale_mat[:3, 3]) / s, dtype=torch.float32)[None]
-    d = torch.as_tensor(direction, dtype=torch.float32)[None]
+    s = world_scale(scale_mat)  # world units per normalised unit along the ray
+    o = torch.as_tensor(to_normalised(origin, scale_mat), dtype=torch.float32)[None]  # (1, 3)
+    d = torch.as_tensor(direction, dtype=torch.float32)[None]  # (1, 3): same in both frames
     with torch.no_grad():
         near, far = near_far_from_sphere(o, d)  # (1, 1)
         z = coarse_z_vals(near, far, r.n_samples, perturb=False)  # (1, N)

@@ -95,14 +95,6 @@ def crop_box(cam: Camera, center: np.ndarray, radius: float,
     return np.array([x - half, y - half, x + half, y + half])
 
 
-def zoom_camera(cam: Camera, box: np.ndarray, size: int) -> Camera:
-    """The camera whose `size` x `size` image shows the pixel box (x0, y0, x1, y1) of `cam`."""
-    x0, y0, x1, y1 = box
-    s = size / max(x1 - x0, y1 - y0)
-    A = np.array([[s, 0.0, -s * x0 - 0.5], [0.0, s, -s * y0 - 0.5], [0.0, 0.0, 1.0]])
-    return Camera(A @ cam.P, size, size)
-
-
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / max(float(np.linalg.norm(v)), 1e-12)
 
