@@ -66,12 +66,12 @@ def score_demo_mesh(mesh_path, scene_dir) -> dict:
     import numpy as np
     import trimesh
 
-    from neus_l0.evaluation.score import score_mesh
+    from neus_l0.evaluation.score import ScoreSpec, score_mesh
 
     gt = trimesh.load(scene_dir / "gt_mesh.ply", force="mesh")
     extent = float(np.ptp(np.asarray(gt.vertices), axis=0).max())
-    return score_mesh(mesh_path, scene=scene_dir, density=extent / 150.0,
-                      log=lambda msg: None)
+    return score_mesh(mesh_path, ScoreSpec(scene=scene_dir, density=extent / 150.0),
+                      log=lambda _msg: None)
 
 
 def run(args: argparse.Namespace) -> int:
