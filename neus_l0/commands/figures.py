@@ -53,8 +53,8 @@ def run(args: argparse.Namespace) -> int:
     bench, out = Path(args.bench), check_output_dir(args.out, "--out")
     scene_dir, runs = select_runs(bench, samplers, args.scene, args.budget, args.seed)
     with torch.no_grad():
-        entries = make_figures(scene_dir, runs, out, args.width, args.crop, args.error_max,
-                               args.pit)
+        entries = make_figures(scene_dir, runs, out, overview_width=args.width,
+                               crop_size=args.crop, error_max=args.error_max, pit=args.pit)
     first = next(iter(runs.values()))
     command = (f"neus-l0 figures --bench {bench} --out {out} --scene {first.scene}"
                f" --budget {first.budget_s:g} --seed {first.seed}"

@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from neus_l0.checkpoint import load_trained_model
-    from neus_l0.commands.train import pick_device
+    from neus_l0.device import pick_device
     from neus_l0.mesh import export_mesh, extract_mesh, from_world, vertex_colors
     from neus_l0.mesh_cleanup import clean_up
 

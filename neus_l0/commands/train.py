@@ -28,24 +28,12 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     return p
 
 
-def pick_device(name: str | None) -> str:
-    """`name`, or cuda when available; cuda without a GPU is a user error."""
-    import torch
-
-    from neus_l0.errors import NeusL0Error
-
-    if name is None:
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise NeusL0Error("--device cuda: no CUDA device is available")
-    return name
-
-
 def run(args: argparse.Namespace) -> int:
 
     from neus_l0.commands._paths import check_output_dir
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
+    from neus_l0.device import pick_device
     from neus_l0.train import train
 
     run_dir = check_output_dir(args.out, "--out")
