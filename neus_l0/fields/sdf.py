@@ -136,18 +136,20 @@ class SDFNetwork(nn.Module):
             return enc.bound / (enc.finest_active_resolution() * self.scale)
         return FD_STEP / self.scale
 
-    def forward_and_finite_difference(self, x: Tensor) -> tuple[Tensor, Tensor]:
+    def forward_and_finite_difference(self, x: Tensor, step: Tensor | float | None = None
+                                      ) -> tuple[Tensor, Tensor]:
         """The output and central differences of the SDF, in one pass over 7 N points.
 
         Args:
             x: (N, 3) points.
+            step: h (None: `finite_difference_step()`).
 
         Returns:
             output (N, 1 + feature_dim) at x, gradient (N, 3): (f(x + h e_j) - f(x - h e_j))
             / 2h, h = `finite_difference_step()`.
         """
         n = x.shape[0]
-        h = self.finite_difference_step()
+        h = self.finite_difference_step() if step is None else step
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         taps = torch.cat([eye.new_zeros(1, 3), eye, -eye]) * h  # (7, 3)
         out = self.forward((x + taps[:, None, :]).view(7 * n, 3)).view(7, n, -1)
