@@ -110,6 +110,13 @@ class SDFConfig:
     """Sharpness of the softplus activation."""
     weight_norm: bool = True
     """Weight normalisation on every linear layer."""
+    gradient: str = "autograd"
+    """How the SDF's spatial gradient (the Eikonal term's and the colour network's normal)
+    is computed (`neus_l0.fields.sdf`): `autograd` (torch.autograd.grad; in training a
+    double backward), `analytic` (the hash grid's / frequency encoding's derivative in
+    closed form carried forward through the MLP: one ordinary backward, same values) or
+    `finite-difference` (central differences with one batched 7-point pass; the step is
+    half a cell of the hash grid's finest active level, or 1e-3 without a hash grid)."""
 
 
 @dataclass
