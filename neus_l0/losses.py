@@ -65,9 +65,17 @@ def eikonal(gradients: Tensor, mask: Tensor) -> Tensor:
     return (mask * eik).sum() / (mask.sum() + 1e-5)
 
 
+def eikonal_indices(n: int, fraction: float, generator: torch.Generator | None,
+                    device: torch.device | str) -> Tensor:
+    """The ``ceil(fraction * n)`` sample indices (with replacement) of `eikonal_subset`."""
+    k = max(1, math.ceil(fraction * n))
+    return torch.randint(0, max(1, n), (k,), generator=generator, device=device)
+
+
 def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainConfig,
               generator: torch.Generator | None = None,
-              mask_scale: float | Tensor = 1.0) -> dict[str, Tensor]:
+              mask_scale: float | Tensor = 1.0,
+              eikonal_idx: Tensor | None = None) -> dict[str, Tensor]:
     """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE.
 
     Args:
@@ -81,6 +89,7 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
             reach the surface have zero opacity by construction, so their mask term is a
             constant without gradient; drawing only from the others and scaling by that
             fraction keeps NeuS's expected gradient.
+        eikonal_idx: the Eikonal subset's indices drawn beforehand (`eikonal_indices`).
 
     Returns:
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
@@ -88,7 +97,8 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
     """
     color = color_l1(out.color, target_rgb, mask)
     if cfg.eikonal_fraction < 1.0:
-        eik = eikonal_subset(out.gradients, out.eikonal_mask, cfg.eikonal_fraction, generator)
+        eik = eikonal_subset(out.gradients, out.eikonal_mask, cfg.eikonal_fraction, generator,
+                             eikonal_idx)
     else:
         eik = eikonal(out.gradients, out.eikonal_mask)
     if cfg.mask_weight > 0:
@@ -106,7 +116,8 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
 
 
 def eikonal_subset(gradients: Tensor, mask: Tensor, fraction: float,
-                   generator: torch.Generator | None = None) -> Tensor:
+                   generator: torch.Generator | None = None,
+                   idx: Tensor | None = None) -> Tensor:
     """The Eikonal term over a random subset of the samples (drawn with replacement).
 
     A fixed number of samples, ``ceil(fraction * B * N)``, is drawn uniformly; the term is
@@ -124,8 +135,8 @@ def eikonal_subset(gradients: Tensor, mask: Tensor, fraction: float,
     """
     g = gradients.reshape(-1, 3)
     m = mask.reshape(-1)
-    k = max(1, math.ceil(fraction * m.numel()))
-    idx = torch.randint(0, max(1, m.numel()), (k,), generator=generator, device=g.device)
+    if idx is None:
+        idx = eikonal_indices(m.numel(), fraction, generator, g.device)
     if m.numel() == 0:
         return g.sum() * 0.0
     eik = (g[idx].norm(dim=-1) - 1.0) ** 2

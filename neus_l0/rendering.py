@@ -67,7 +67,8 @@ def near_far_from_sphere(origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]
 
 
 def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
-                  generator: torch.Generator | None = None) -> Tensor:
+                  generator: torch.Generator | None = None,
+                  noise: Tensor | None = None) -> Tensor:
     """Uniform samples in [near, far], shifted by one random offset per ray if `perturb`.
 
     Args:
@@ -75,6 +76,7 @@ def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
         n_samples: samples per ray.
         perturb: jitter by U(-0.5, 0.5) * (far - near) / n_samples (NeuS's 2 / n_samples).
         generator: random source for the jitter.
+        noise: (B, 1) pre-drawn U(0, 1) (instead of drawing from `generator`).
 
     Returns:
         (B, n_samples) sorted.
@@ -82,13 +84,15 @@ def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
     lin = torch.linspace(0.0, 1.0, n_samples, device=near.device, dtype=near.dtype)
     z = near + (far - near) * lin  # (B, n)
     if perturb:
-        r = torch.rand(near.shape, generator=generator, device=near.device, dtype=near.dtype)
+        r = noise if noise is not None else torch.rand(
+            near.shape, generator=generator, device=near.device, dtype=near.dtype)
         z = z + (r - 0.5) * (far - near) / n_samples
     return z
 
 
 def outside_z_vals(far: Tensor, n_outside: int, n_samples: int, perturb: bool,
-                   generator: torch.Generator | None = None) -> Tensor:
+                   generator: torch.Generator | None = None,
+                   noise: Tensor | None = None) -> Tensor:
     """NeuS's background samples beyond `far`, uniform in inverse depth.
 
     Args:
@@ -97,6 +101,7 @@ def outside_z_vals(far: Tensor, n_outside: int, n_samples: int, perturb: bool,
         n_samples: coarse samples (sets the gap 1 / n_samples after `far`).
         perturb: stratified jitter within each stratum.
         generator: random source.
+        noise: (B, n_outside) pre-drawn U(0, 1) (instead of drawing from `generator`).
 
     Returns:
         (B, n_outside) sorted, all > far.
@@ -108,7 +113,8 @@ def outside_z_vals(far: Tensor, n_outside: int, n_samples: int, perturb: bool,
         mids = 0.5 * (s[:, 1:] + s[:, :-1])
         upper = torch.cat([mids, s[:, -1:]], -1)
         lower = torch.cat([s[:, :1], mids], -1)
-        r = torch.rand(s.shape, generator=generator, device=far.device, dtype=far.dtype)
+        r = noise if noise is not None else torch.rand(
+            s.shape, generator=generator, device=far.device, dtype=far.dtype)
         s = lower + (upper - lower) * r
     return far / torch.flip(s, dims=[-1]) + 1.0 / n_samples
 
@@ -390,6 +396,29 @@ def ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
 
 
 @dataclasses.dataclass
+class RenderNoise:
+    """The uniforms one batch's jitter uses, drawn before rendering (a compiled step takes
+    tensors, not a generator).
+
+    Attributes:
+        coarse: (B, 1) U(0, 1): the coarse samples' shift.
+        outside: (B, n_outside) U(0, 1): the background samples' strata, or None.
+    """
+
+    coarse: Tensor
+    outside: Tensor | None = None
+
+
+def draw_noise(cfg: RenderConfig, n_rays: int, generator: torch.Generator | None,
+               device: torch.device | str) -> RenderNoise:
+    """The jitter of a batch of `n_rays` rays (see `RenderNoise`)."""
+    coarse = torch.rand((n_rays, 1), generator=generator, device=device)
+    outside = (torch.rand((n_rays, cfg.n_outside), generator=generator, device=device)
+               if cfg.n_outside > 0 else None)
+    return RenderNoise(coarse, outside)
+
+
+@dataclasses.dataclass
 class RenderOutput:
     """What `render_rays` rendered: B rays, N samples each in [near, far].
 
@@ -429,10 +458,14 @@ class RenderOutput:
         """``out["color"]``; the old dict names (``z_vals``, ``z_fine``, ``mid_z_vals``)."""
         return getattr(self, self._OLD_NAMES.get(key, key))
 
+    def items(self) -> list[tuple[str, Tensor]]:
+        """(name, tensor) pairs, as a dict's."""
+        return [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)]
+
 
 def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
-                cfg: RenderConfig, sampler: str, cos_anneal_ratio: float, perturb: bool,
-                generator: torch.Generator | None, create_graph: bool) -> dict[str, Tensor]:
+                cfg: RenderConfig, sampler: str, cos_anneal_ratio: float | Tensor,
+                noise: RenderNoise | None, create_graph: bool) -> dict[str, Tensor]:
     """Samples in [near, far], up-sampling, and the SDF / colour networks on them.
 
     Args:
@@ -445,7 +478,8 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, f
         from any autocast precision).
     """
     B = origins.shape[0]
-    t = coarse_z_vals(near, far, cfg.n_samples, perturb, generator)
+    t = coarse_z_vals(near, far, cfg.n_samples, noise is not None,
+                      noise=None if noise is None else noise.coarse)
     t, t_fine = up_sample(model, origins, dirs, t, cfg, sampler)
     N = t.shape[1]
     last = (far - near) / cfg.n_samples  # (B, 1) NeuS's 2 / n_samples on its own bounds
@@ -466,15 +500,16 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, f
 
 
 def _with_background(model: NeuSModel, origins: Tensor, dirs: Tensor, fg: dict[str, Tensor],
-                     inside: Tensor, far: Tensor, cfg: RenderConfig, perturb: bool,
-                     generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+                     inside: Tensor, far: Tensor, cfg: RenderConfig,
+                     noise: RenderNoise | None) -> tuple[Tensor, Tensor]:
     """NeuS's blend: the background model outside the unit sphere and beyond `far`.
 
     Returns:
         alpha (B, N + n_outside) and rgb (B, N + n_outside, 3).
     """
     N = fg["t"].shape[1]
-    t_out = outside_z_vals(far, cfg.n_outside, cfg.n_samples, perturb, generator)
+    t_out = outside_z_vals(far, cfg.n_outside, cfg.n_samples, noise is not None,
+                           noise=None if noise is None else noise.outside)
     bg_alpha, bg_rgb = background_alpha_color(model, origins, dirs,
                                               torch.cat([fg["t"], t_out], dim=-1),
                                               2.0 / cfg.n_samples)
@@ -485,10 +520,11 @@ def _with_background(model: NeuSModel, origins: Tensor, dirs: Tensor, fg: dict[s
 
 
 def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-                sampler: str = "l0", *, cos_anneal_ratio: float = 1.0, perturb: bool = False,
-                generator: torch.Generator | None = None, create_graph: bool = False,
-                occupancy: RayBounds | None = None,
-                bounds: Sequence[RayBounds] = ()) -> RenderOutput:
+                sampler: str = "l0", *, cos_anneal_ratio: float | Tensor = 1.0,
+                perturb: bool = False, generator: torch.Generator | None = None,
+                create_graph: bool = False, occupancy: RayBounds | None = None,
+                bounds: Sequence[RayBounds] = (),
+                noise: RenderNoise | None = None) -> RenderOutput:
     """Render a batch of rays with NeuS.
 
     Skipping work without changing shapes: with `cfg.cull_outside_sphere`, a visual hull
@@ -508,6 +544,8 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         cos_anneal_ratio: NeuS's cos annealing (1: unbiased).
         perturb: jitter the coarse (and background) samples, drawing from `generator`.
         generator: random source of the jitter.
+        noise: the jitter's uniforms drawn beforehand (`draw_noise`); given, it is used
+            whatever `perturb` says.
         create_graph: keep the graph of the SDF gradients (training: Eikonal loss).
         occupancy: an occupancy grid (appended to `bounds`; kept for older callers).
         bounds: objects that narrow the rays' bounds (see `ray_bounds`).
@@ -516,9 +554,11 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         a `RenderOutput`.
     """
     bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
+    if noise is None and perturb:
+        noise = draw_noise(cfg, origins.shape[0], generator, origins.device)
     near, far, active = ray_bounds(origins, dirs, cfg, bounds)
     fg = _foreground(model, origins, dirs, near, far, cfg, sampler, cos_anneal_ratio,
-                     perturb, generator, create_graph)
+                     noise, create_graph)
     keep = active[:, None].to(fg["alpha"].dtype)  # (B, 1)
     fg["alpha"] = fg["alpha"] * keep
     N = fg["t"].shape[1]
@@ -528,8 +568,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     eikonal_mask = ((pts_norm < 1.2) & active[:, None]).to(keep.dtype).detach()
     use_bg = cfg.n_outside > 0 and model.background is not None
     if use_bg:
-        alpha, rgb = _with_background(model, origins, dirs, fg, inside, far, cfg, perturb,
-                                      generator)
+        alpha, rgb = _with_background(model, origins, dirs, fg, inside, far, cfg, noise)
     else:
         alpha, rgb = fg["alpha"], fg["rgb"]
 

@@ -22,7 +22,7 @@ import dataclasses
 import json
 import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -58,10 +58,10 @@ from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields import NeuSModel, build_model
 from neus_l0.interrupt import StopOnSignal
-from neus_l0.losses import neus_loss
+from neus_l0.losses import eikonal_indices, neus_loss
 from neus_l0.occupancy import OccupancyGrid
 from neus_l0.pixel_pool import PixelPool, reachable_pixels
-from neus_l0.rendering import RayBounds, render_rays
+from neus_l0.rendering import RayBounds, RenderNoise, draw_noise, render_rays
 from neus_l0.runlock import RunLock
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
 from neus_l0.validation import validation_image, validation_views  # noqa: F401 (moved)
@@ -182,12 +182,79 @@ def next_batch_size(rays: int, samples: float, cfg: Config) -> int:
     return int(min(max(round(rays * t.sample_budget / samples), lo), hi))
 
 
+@dataclasses.dataclass
+class StepInputs:
+    """What one step draws and reads before rendering: no generator, no Python number that
+    changes between steps, so a compiled `render_and_loss` sees the same kinds of inputs
+    every step.
+
+    Attributes:
+        origins, dirs: (B, 3) the rays; rgb: (B, 3) their pixels; mask: (B, 1) binary (ones
+            when masks are unused).
+        noise: the jitter's uniforms (None: no jitter).
+        eikonal_idx: (k,) the Eikonal subset's samples (None: all samples).
+        anneal: () NeuS's cos-anneal ratio at this iteration.
+        mask_scale: the pixel pool's fraction (1: rays drawn from every pixel).
+    """
+
+    origins: Tensor
+    dirs: Tensor
+    rgb: Tensor
+    mask: Tensor
+    noise: RenderNoise | None
+    eikonal_idx: Tensor | None
+    anneal: Tensor
+    mask_scale: float
+
+
+def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
+                     generator: torch.Generator, pool: PixelPool | None) -> StepInputs:
+    """Draw one step's rays and random numbers (`StepInputs`), in a fixed order."""
+    if pool is None:
+        batch, mask_scale = random_rays(scene, n_rays, generator), 1.0
+    else:
+        batch = random_pixel_rays(scene, n_rays, pool.pixels, generator)
+        mask_scale = pool.fraction
+    r = cfg.render
+    noise = draw_noise(r, n_rays, generator, scene.device) if r.perturb else None
+    eik_idx = None
+    if cfg.train.eikonal_fraction < 1.0:
+        n_samples = n_rays * (r.n_samples + (r.n_importance if r.up_sample_steps else 0))
+        eik_idx = eikonal_indices(n_samples, cfg.train.eikonal_fraction, generator,
+                                  scene.device)
+    mask = batch["mask"]
+    mask = (mask > 0.5).float() if cfg.train.mask_weight > 0 else torch.ones_like(mask)
+    anneal = torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
+                          device=scene.device)
+    return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
+                      anneal, mask_scale)
+
+
+def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
+                    bounds: tuple) -> tuple[Tensor, Tensor]:
+    """Render a step's rays and compute its loss (what `train.compile` compiles).
+
+    Returns:
+        the loss () and the step's metrics (len(METRIC_NAMES),), detached.
+    """
+    with autocast(cfg, inputs.origins.device):
+        out = render_rays(model, inputs.origins, inputs.dirs, cfg.render, sampler,
+                          cos_anneal_ratio=inputs.anneal, create_graph=True, bounds=bounds,
+                          noise=inputs.noise)
+    losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
+                       eikonal_idx=inputs.eikonal_idx)
+    samples = out.active.sum() * out.t.shape[1]
+    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]
+    return losses["loss"], torch.stack([v.detach().reshape(()).float() for v in values])
+
+
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
                iteration: int, generator: torch.Generator, *,
                occupancy: OccupancyGrid | None = None,
                scaler: torch.amp.GradScaler | None = None,
                batch_size: int | None = None, bounds: Sequence[RayBounds] = (),
-               sampler=None, pool: PixelPool | None = None) -> Tensor:
+               sampler=None, pool: PixelPool | None = None,
+               compiled: Callable | None = None) -> Tensor:
     """One optimisation step on a random batch of rays.
 
     Fixed shapes and no host synchronisation, except the occupancy grid's update (once per
@@ -205,43 +272,32 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
         bounds: what else narrows the rays (a visual hull), before the grid.
         sampler: the up-sampling draw (default: the config's).
         pool: draw the rays from these pixels only (`neus_l0.pixel_pool`; None: from all).
+        compiled: a compiled `render_and_loss` (`neus_l0.compile_step`); None: eager.
 
     Returns:
         (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order
         (``samples``: foreground samples evaluated, active rays x samples per ray).
     """
-    # learning rate, batch, grid update
+    # learning rate, batch and random numbers, grid update
     set_learning_rate(optimizer, cfg, iteration)
-    n_rays = batch_size or cfg.train.batch_size
-    if pool is None:
-        batch, mask_scale = random_rays(scene, n_rays, generator), 1.0
-    else:
-        batch = random_pixel_rays(scene, n_rays, pool.pixels, generator)
-        mask_scale = pool.fraction
-    use_mask = cfg.train.mask_weight > 0
-    mask = (batch["mask"] > 0.5).float() if use_mask else torch.ones_like(batch["mask"])
+    inputs = draw_step_inputs(scene, cfg, iteration, batch_size or cfg.train.batch_size,
+                              generator, pool)
     update_occupancy(occupancy, model, cfg, iteration)
     bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
     # render and loss
-    with autocast(cfg, scene.device):
-        out = render_rays(model, batch["origins"], batch["dirs"], cfg.render,
-                          cfg.sampler if sampler is None else sampler,
-                          cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end),
-                          perturb=cfg.render.perturb, generator=generator, create_graph=True,
-                          bounds=bounds)
-    losses = neus_loss(out, batch["rgb"], mask, cfg.train, generator, mask_scale)
+    step_fn = compiled or render_and_loss
+    loss, metrics = step_fn(model, inputs, cfg, cfg.sampler if sampler is None else sampler,
+                            bounds)
     # backward and update
     optimizer.zero_grad(set_to_none=True)
     if scaler is not None and scaler.is_enabled():
-        scaler.scale(losses["loss"]).backward()
+        scaler.scale(loss).backward()
         scaler.step(optimizer)
         scaler.update()
     else:
-        losses["loss"].backward()
+        loss.backward()
         optimizer.step()
-    samples = out.active.sum() * out.t.shape[1]
-    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]
-    return torch.stack([v.detach().reshape(()).float() for v in values])
+    return metrics
 
 
 class Clock:

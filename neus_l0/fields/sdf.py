@@ -198,7 +198,7 @@ def sdf_and_gradient(net: SDFNetwork, x: Tensor, create_graph: bool,
         it follows the caller's grad mode, and so does the progressive hash grid's count
         of training passes.
     """
-    method = net.gradient if method is None else method
+    method = getattr(net, "gradient", "autograd") if method is None else method
     if method != "autograd":
         if method == "analytic":
             out, grad = net.forward_and_gradient(x.detach())
