@@ -292,6 +292,10 @@ class TrainConfig:
     amp: str = "off"
     """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
     scaler and fused Adam); ignored on the CPU."""
+    compile: bool = False
+    """Compile the training step's render and loss with `torch.compile`
+    (`neus_l0.compile_step`; needs `model.sdf.gradient` analytic or finite-difference;
+    CUDA graphs on CUDA where they work)."""
     tensorboard: bool = True
     """Write TensorBoard events into the run folder (`tensorboard --logdir RUN`)."""
     eikonal_fraction: float = 1.0

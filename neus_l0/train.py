@@ -52,6 +52,7 @@ from neus_l0.checkpoint import (
     rng_state,
     save_checkpoint,
 )
+from neus_l0.compile_step import compiled_step
 from neus_l0.config import Config, dump_config, to_dict
 from neus_l0.data.rays import random_pixel_rays, random_rays
 from neus_l0.data.scene import Scene
@@ -336,6 +337,7 @@ class TrainLoop:
     bounds: tuple = ()
     sampler: object = None
     pool: PixelPool | None = None
+    compiled: Callable | None = None
     iteration: int = 0
     rays: int = 0
     clock: Clock = dataclasses.field(default_factory=Clock)
@@ -436,6 +438,7 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
     loop.generator.manual_seed(cfg.train.seed)
     loop.pool = reachable_pixels(scene, cfg.render, loop.bounds,
                                  background=model.background is not None)
+    loop.compiled = compiled_step(render_and_loss, cfg, device)
     if state is not None:
         loop.iteration, rays = restore_training(ckpt, state, model, loop.optimizer,
                                                 loop.generator, loop.scaler, loop.occupancy)
@@ -554,7 +557,7 @@ def _run_loop(loop: TrainLoop, cbs: list[TrainingCallback], stop_at: int | None,
         step = train_step(loop.model, loop.optimizer, loop.scene, cfg, loop.iteration,
                           loop.generator, occupancy=loop.occupancy, scaler=loop.scaler,
                           batch_size=loop.rays, bounds=loop.bounds, sampler=loop.sampler,
-                          pool=loop.pool)
+                          pool=loop.pool, compiled=loop.compiled)
         acc += step
         steps += 1
         loop.iteration += 1
