@@ -123,7 +123,7 @@ class Validation(TrainingCallback):
         view = (loop.iteration // every) % loop.scene.n_views
         with loop.evaluating():
             img = validation_image(loop.model, loop.scene, loop.cfg, view, loop.iteration,
-                                   bounds=loop.bounds, sampler=loop.sampler)
+                                   bounds=loop.bounds, sampler=loop.setup.sampler)
         write_png(loop.run_dir / "validation" / f"{loop.iteration:07d}_v{view:03d}.png", img)
         for sink in self.sinks:
             sink(loop.iteration, f"validation/v{view:03d}", img)

@@ -62,7 +62,7 @@ from neus_l0.interrupt import StopOnSignal
 from neus_l0.losses import eikonal_indices, neus_loss
 from neus_l0.occupancy import OccupancyGrid
 from neus_l0.pixel_pool import PixelPool, reachable_pixels
-from neus_l0.rendering import RayBounds, RenderNoise, draw_noise, render_rays
+from neus_l0.rendering import RenderNoise, draw_noise, render_rays
 from neus_l0.runlock import RunLock
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
 from neus_l0.validation import validation_image, validation_views  # noqa: F401 (moved)
@@ -249,13 +249,28 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
     return losses["loss"], torch.stack([v.detach().reshape(()).float() for v in values])
 
 
+@dataclasses.dataclass
+class StepSetup:
+    """What a run builds once and every step uses (all optional).
+
+    Attributes:
+        bounds: what narrows the rays besides the sphere (a visual hull), before the grid.
+        sampler: the up-sampling draw (None: the config's).
+        pool: draw the rays from these pixels only (`neus_l0.pixel_pool`; None: from all).
+        compiled: a compiled `render_and_loss` (`neus_l0.compile_step`; None: eager).
+    """
+
+    bounds: tuple = ()
+    sampler: object = None
+    pool: PixelPool | None = None
+    compiled: Callable | None = None
+
+
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
                iteration: int, generator: torch.Generator, *,
                occupancy: OccupancyGrid | None = None,
                scaler: torch.amp.GradScaler | None = None,
-               batch_size: int | None = None, bounds: Sequence[RayBounds] = (),
-               sampler=None, pool: PixelPool | None = None,
-               compiled: Callable | None = None) -> Tensor:
+               batch_size: int | None = None, setup: StepSetup | None = None) -> Tensor:
     """One optimisation step on a random batch of rays.
 
     Fixed shapes and no host synchronisation, except the occupancy grid's update (once per
@@ -270,25 +285,23 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
         occupancy: the occupancy grid (updated here every `update_every` iterations).
         scaler: the fp16 gradient scaler (`make_scaler`); None: none.
         batch_size: rays of this step (None: `train.batch_size`).
-        bounds: what else narrows the rays (a visual hull), before the grid.
-        sampler: the up-sampling draw (default: the config's).
-        pool: draw the rays from these pixels only (`neus_l0.pixel_pool`; None: from all).
-        compiled: a compiled `render_and_loss` (`neus_l0.compile_step`); None: eager.
+        setup: the run's hull bounds, sampler, pixel pool and compiled step (`StepSetup`).
 
     Returns:
         (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order
         (``samples``: foreground samples evaluated, active rays x samples per ray).
     """
     # learning rate, batch and random numbers, grid update
+    setup = setup or StepSetup()
     set_learning_rate(optimizer, cfg, iteration)
     inputs = draw_step_inputs(scene, cfg, iteration, batch_size or cfg.train.batch_size,
-                              generator, pool)
+                              generator, setup.pool)
     update_occupancy(occupancy, model, cfg, iteration)
-    bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
+    bounds = tuple(setup.bounds) + ((occupancy,) if occupancy is not None else ())
     # render and loss
-    step_fn = compiled or render_and_loss
-    loss, metrics = step_fn(model, inputs, cfg, cfg.sampler if sampler is None else sampler,
-                            bounds)
+    step_fn = setup.compiled or render_and_loss
+    sampler = cfg.sampler if setup.sampler is None else setup.sampler
+    loss, metrics = step_fn(model, inputs, cfg, sampler, bounds)
     # backward and update
     optimizer.zero_grad(set_to_none=True)
     if scaler is not None and scaler.is_enabled():
@@ -334,10 +347,7 @@ class TrainLoop:
     scaler: torch.amp.GradScaler
     generator: torch.Generator
     occupancy: OccupancyGrid | None = None
-    bounds: tuple = ()
-    sampler: object = None
-    pool: PixelPool | None = None
-    compiled: Callable | None = None
+    setup: StepSetup = dataclasses.field(default_factory=StepSetup)
     iteration: int = 0
     rays: int = 0
     clock: Clock = dataclasses.field(default_factory=Clock)
@@ -348,6 +358,11 @@ class TrainLoop:
     @property
     def device(self) -> torch.device:
         return self.scene.device
+
+    @property
+    def bounds(self) -> tuple:
+        """Everything that narrows the rays: the setup's bounds, then the grid."""
+        return tuple(self.setup.bounds) + ((self.occupancy,) if self.occupancy is not None else ())
 
     @contextlib.contextmanager
     def evaluating(self) -> Iterator[None]:
@@ -436,9 +451,9 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
                      generator=torch.Generator(device=device),
                      occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
     loop.generator.manual_seed(cfg.train.seed)
-    loop.pool = reachable_pixels(scene, cfg.render, loop.bounds,
-                                 background=model.background is not None)
-    loop.compiled = compiled_step(render_and_loss, cfg, device)
+    loop.setup.pool = reachable_pixels(scene, cfg.render, loop.setup.bounds,
+                                       background=model.background is not None)
+    loop.setup.compiled = compiled_step(render_and_loss, cfg, device)
     if state is not None:
         loop.iteration, rays = restore_training(ckpt, state, model, loop.optimizer,
                                                 loop.generator, loop.scaler, loop.occupancy)
@@ -556,8 +571,7 @@ def _run_loop(loop: TrainLoop, cbs: list[TrainingCallback], stop_at: int | None,
         # step
         step = train_step(loop.model, loop.optimizer, loop.scene, cfg, loop.iteration,
                           loop.generator, occupancy=loop.occupancy, scaler=loop.scaler,
-                          batch_size=loop.rays, bounds=loop.bounds, sampler=loop.sampler,
-                          pool=loop.pool, compiled=loop.compiled)
+                          batch_size=loop.rays, setup=loop.setup)
         acc += step
         steps += 1
         loop.iteration += 1
