@@ -51,12 +51,14 @@ def _one_line_error(capsys, *fragments):
     ["train", "DATA", "--out", "{f}/run", "--quiet"],
     ["synth", "demo", "{f}/scene"],
     ["mesh", "RUN", "--out", "{f}/mesh.ply"],
+    ["eval", "DATA/m.ply", "--scene", "DATA", "--error-maps", "{f}"],
+    ["eval", "DATA/m.ply", "--scene", "DATA", "--json", "{f}/m.json"],
 ])
 def test_an_output_folder_that_is_a_file_is_one_line(tmp_path, capsys, argv):
     f = tmp_path / "afile"
     f.write_text("keep me\n")
     args = [a.format(f=f) for a in argv]
-    args = [str(tmp_path / "data") if a == "DATA" else a for a in args]
+    args = [a.replace("DATA", str(tmp_path / "data")) for a in args]
     args = [str(tmp_path / "run") if a == "RUN" else a for a in args]
     assert main(args) == 2
     _one_line_error(capsys, str(f))
