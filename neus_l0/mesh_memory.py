@@ -8,8 +8,10 @@ The estimate (bytes) has two parts:
 
 - the grids, exact: *dense* holds the float32 volume, 4 R^3; *sparse* (blocks of ``block``
   cells, nb = ceil((R - 1) / block) per axis) holds the float32 coarse grid,
-  4 (nb + 1)^3, and `keep_blocks`'s per-block temporaries (about 16 bytes a block), plus
-  one batch of `chunk` points (about 40 bytes a point);
+  4 (nb + 1)^3, and `keep_blocks`'s per-block temporaries (about 16 bytes a block);
+- one batch of `chunk` points through the SDF network: `EVAL_BYTES_PER_POINT` a point
+  (measured peak under `torch.no_grad` on the CPU, 2^18 points: 2.6 kB for ``demo``,
+  3.1 kB for ``wmask``, 6.8 kB for ``fast``);
 - the mesh, assumed: marching cubes gives about `FACES_PER_AREA` triangles per grid step
   squared of surface (measured: 3.0 on spheres of radius 0.5 and 0.9 at 256^3 and
   512^3), and extraction, clean-up and export peak at about `BYTES_PER_FACE` bytes a face
@@ -38,8 +40,8 @@ TYPICAL_AREA = 2.0 * math.pi
 KEEP_BLOCK_BYTES = 16
 """`keep_blocks` temporaries per block (absolute maximum, counts, masks, dilation)."""
 
-POINT_BYTES = 40
-"""Bytes per point of one evaluation batch (coordinates, broadcasts, SDF values)."""
+EVAL_BYTES_PER_POINT = 8192
+"""Bytes per point of one SDF evaluation batch (network activations; measured <= 6.8 kB)."""
 
 
 def mesh_faces(resolution: int, bound: float = 1.0, area: float = TYPICAL_AREA) -> float:
@@ -68,10 +70,11 @@ def extraction_bytes(method: str, resolution: int, block: int = 8, bound: float 
         grid = 4 * R**3
     elif method == "sparse":
         nb = -(-(R - 1) // int(block))
-        grid = 4 * (nb + 1) ** 3 + KEEP_BLOCK_BYTES * nb**3 + POINT_BYTES * chunk
+        grid = 4 * (nb + 1) ** 3 + KEEP_BLOCK_BYTES * nb**3
     else:
         raise NeusL0Error(f"mesh method '{method}': use dense or sparse")
-    return int(grid + BYTES_PER_FACE * mesh_faces(R, bound, area))
+    batch = EVAL_BYTES_PER_POINT * min(int(chunk), R**3)
+    return int(grid + batch + BYTES_PER_FACE * mesh_faces(R, bound, area))
 
 
 def _cgroup_available() -> int | None:
@@ -173,6 +176,7 @@ def plan_extraction(method: str, resolution: int, block: int = 8,
                           f"({_gib(available)} available); using the sparse path (about "
                           f"{_gib(sparse)})")
     best = largest_resolution("sparse", available, block)
+    fit = (f"the largest resolution that fits is about {best} (sparse)" if best else
+           "not even --resolution 8 fits; free some memory")
     raise NeusL0Error(f"--resolution {resolution}: {method} extraction needs about "
-                      f"{_gib(need)} of memory, {_gib(available)} is available; the largest "
-                      f"resolution that fits is about {best} (sparse)")
+                      f"{_gib(need)} of memory, {_gib(available)} is available; {fit}")

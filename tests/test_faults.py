@@ -23,6 +23,7 @@ from neus_l0.data.scene import load_scene, validate_scene
 from neus_l0.errors import NeusL0Error, SceneError
 from neus_l0.mesh_memory import (
     BYTES_PER_FACE,
+    EVAL_BYTES_PER_POINT,
     available_memory,
     extraction_bytes,
     largest_resolution,
@@ -50,12 +51,14 @@ def _one_line_error(capsys, *fragments):
     ["train", "DATA", "--out", "{f}/run", "--quiet"],
     ["synth", "demo", "{f}/scene"],
     ["mesh", "RUN", "--out", "{f}/mesh.ply"],
+    ["eval", "DATA/m.ply", "--scene", "DATA", "--error-maps", "{f}"],
+    ["eval", "DATA/m.ply", "--scene", "DATA", "--json", "{f}/m.json"],
 ])
 def test_an_output_folder_that_is_a_file_is_one_line(tmp_path, capsys, argv):
     f = tmp_path / "afile"
     f.write_text("keep me\n")
     args = [a.format(f=f) for a in argv]
-    args = [str(tmp_path / "data") if a == "DATA" else a for a in args]
+    args = [a.replace("DATA", str(tmp_path / "data")) for a in args]
     args = [str(tmp_path / "run") if a == "RUN" else a for a in args]
     assert main(args) == 2
     _one_line_error(capsys, str(f))
@@ -73,9 +76,10 @@ def test_mesh_out_that_is_a_folder_is_one_line(tmp_path, capsys):
 def test_extraction_bytes_grids_are_exact():
     for R in (9, 64, 257):
         faces = mesh_faces(R)
-        assert extraction_bytes("dense", R) == int(4 * R**3 + BYTES_PER_FACE * faces)
+        batch = EVAL_BYTES_PER_POINT * min(2**18, R**3)
+        assert extraction_bytes("dense", R) == int(4 * R**3 + batch + BYTES_PER_FACE * faces)
         nb = -(-(R - 1) // 8)
-        assert extraction_bytes("sparse", R) >= 4 * (nb + 1) ** 3 + BYTES_PER_FACE * faces
+        assert extraction_bytes("sparse", R) >= 4 * (nb + 1) ** 3 + batch + BYTES_PER_FACE * faces
     # the case: the sparse path's coarse grid alone is 7.1 TiB at 100000^3
     assert extraction_bytes("sparse", 100_000) > 7.1 * 2**40
     assert extraction_bytes("dense", 100_000) > 4 * 1e15
@@ -87,6 +91,8 @@ def test_largest_resolution_is_the_boundary():
             r = largest_resolution(method, budget)
             assert extraction_bytes(method, r) <= budget < extraction_bytes(method, r + 1)
     assert largest_resolution("dense", 1000) == 0
+    with pytest.raises(NeusL0Error, match="not even --resolution 8 fits"):
+        plan_extraction("sparse", 64, available=1000)
 
 
 def test_plan_refuses_with_the_largest_resolution_that_fits():

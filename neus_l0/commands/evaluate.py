@@ -53,8 +53,13 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 def run(args: argparse.Namespace) -> int:
     from neus_l0.atomic import atomic_write_json
+    from neus_l0.commands._paths import check_output_dir, check_output_file
     from neus_l0.evaluation.score import ScoreSpec, score_mesh
 
+    out = args.json if args.json is not None else args.mesh.with_name(args.mesh.name + ".eval.json")
+    check_output_file(out, "--json")
+    if args.error_maps is not None:
+        check_output_dir(args.error_maps, "--error-maps")
     spec = ScoreSpec(
         scene=args.scene, dtu_dir=args.dtu, scan=args.scan, cull=args.cull,
         cull_dilate=args.cull_dilate, error_maps=args.error_maps, vmax=args.vmax,
@@ -62,7 +67,6 @@ def run(args: argparse.Namespace) -> int:
         margin_low=args.margin_low, margin_high=args.margin_high, depth_tol=args.depth_tol,
         seed=args.seed, workers=args.workers)
     report = score_mesh(args.mesh, spec)
-    out = args.json if args.json is not None else args.mesh.with_name(args.mesh.name + ".eval.json")
     atomic_write_json(out, report)
     print(f"eval: wrote {out}", file=sys.stderr, flush=True)
 

@@ -23,7 +23,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="write OUT.obj with UVs (xatlas), OUT.mtl and an OUT.png texture "
                         "baked from the colour network (view = -normal); needs --out *.obj; "
                         "xatlas takes about 25 s per 50k faces on a 2-core CPU, so add "
-                        "--simplify for big meshes")
+                        "--simplify for big meshes (replaces --colors)")
     p.add_argument("--texture-size", type=int, default=1024, metavar="TEXELS",
                    help="about how many texels a side the texture has (1024)")
     p.add_argument("--simplify", type=int, default=None, metavar="FACES",
