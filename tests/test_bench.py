@@ -153,6 +153,11 @@ def test_cli_rejects_bad_arguments(tmp_path, capsys):
     assert main(["bench", "--scenes", "demo", "--seconds", "1", "--out", str(tmp_path),
                  "sampler=hvs"]) == 2
     assert main(["bench", "--seconds", "1"]) == 2
+    assert main(["bench", "--scenes", "demo", "--seconds", "1", "--out", str(tmp_path),
+                 "--threads", "-1"]) == 2
+    assert main(["bench", "--scenes", "demo", "--seconds", "1", "--out", str(tmp_path),
+                 "--psnr-pixels", "0"]) == 2
+    assert "--psnr-pixels 0" in capsys.readouterr().err
 
 
 def test_ray_backend_gives_the_rows_of_the_local_one(sweep, tiny_scene, tmp_path):
@@ -236,6 +241,7 @@ def test_step_reporter_throttles_and_the_display_follows(tmp_path):
     StepReporter(path)("mesh")
     display.poll(path)
     assert (bar.desc, bar.n, bar.total) == ("mesh", 0, None)
+    assert sink.getvalue().rsplit("\r", 1)[-1].startswith("mesh: 00:0")  # elapsed, no count
     bar.close()
 
 

@@ -21,6 +21,9 @@ from neus_l0.atomic import atomic_write_json
 #: Name of the step file in a run folder.
 PROGRESS_FILE = "progress.json"
 
+#: tqdm's format for a step of unknown length (marching cubes, scoring).
+UNKNOWN_LENGTH = "{desc}: {elapsed}{postfix}"
+
 
 class StepReporter:
     """Writes a run's current step to ``RUN_DIR/progress.json`` (atomically, throttled).
@@ -75,6 +78,7 @@ class StepDisplay:
         self._step = None
         self.bar.reset()
         self.bar.total = None
+        self.bar.bar_format = UNKNOWN_LENGTH
         self.bar.set_description_str(f"{run_name}: starting")
 
     def poll(self, path: str | Path) -> None:
@@ -89,6 +93,8 @@ class StepDisplay:
             self.bar.reset()
             self.bar.total = total  # reset(total=None) would keep the old total
             self.bar.unit = str(data.get("unit") or "it")
+            # a step of unknown length shows its elapsed time only, not a count of 0
+            self.bar.bar_format = UNKNOWN_LENGTH if total is None else None
             self.bar.set_description_str(step)
         self.bar.n = data.get("n") or 0
         self.bar.set_postfix_str(str(data.get("note") or ""), refresh=False)

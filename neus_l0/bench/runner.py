@@ -361,7 +361,7 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
             sample_dist = hook(result.iteration, model, train_scene.to(spec.device),
                                cfg, force=True)["sample_dist"]
     t_extract = time.monotonic()
-    report(f"mesh: marching cubes {spec.resolution}^3", note="no count; see the time")
+    report(f"mesh: marching cubes {spec.resolution}^3")
     mesh = extract_mesh(model, np.asarray(full.scale_mat), resolution=spec.resolution,
                         clean=True, device=spec.device)
     timings["extract_s"] = time.monotonic() - t_extract
@@ -377,7 +377,7 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
                           log=lambda msg: print(msg, file=sys.stderr, flush=True))
 
     t0 = time.monotonic()
-    report("score: Chamfer", note="no count; see the time")
+    report("score: Chamfer")
     score = score_fn(mesh_path)
     timings["score_s"] = time.monotonic() - t0
 

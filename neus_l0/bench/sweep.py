@@ -129,13 +129,17 @@ def check_settings(out_dir: Path, settings: dict) -> None:
 #: What a sweep uses for the settings not given, by device. On a CPU: the `demo` config
 #: (NeuS's 8x256 `wmask` would spend a CPU's budget on a few hundred iterations), one torch
 #: thread per run (on a loaded machine torch's default of one thread per core made a run
-#: 25x slower), meshes at 128^3 and Chamfer sampled every 0.5 world units (the synthetic
+#: 25x slower), built-in scenes of 24 views at 200x150 (49 at 400x300 took a minute to
+#: synthesise), meshes at 128^3 and Chamfer sampled every 0.5 world units (the synthetic
 #: scenes' ground-truth point spacing): at 256^3 and the DTU protocol's 0.2, marching cubes
 #: and scoring took about 1 and 3 minutes per run on the 2-core dev machine
-#: (docs/BENCHMARKS.md). On CUDA: `fast`, torch's thread count, 256^3 and 0.2.
+#: (docs/BENCHMARKS.md). On CUDA: `fast`, torch's thread count, 49 views at 400x300, 256^3
+#: and 0.2.
 DEVICE_DEFAULTS = {
-    "cpu": {"conf": "demo", "threads": 1, "resolution": 128, "eval_density": 0.5},
-    "cuda": {"conf": "fast", "threads": 0, "resolution": 256, "eval_density": 0.2},
+    "cpu": {"conf": "demo", "threads": 1, "views": 24, "width": 200, "height": 150,
+            "resolution": 128, "eval_density": 0.5},
+    "cuda": {"conf": "fast", "threads": 0, "views": 49, "width": 400, "height": 300,
+             "resolution": 256, "eval_density": 0.2},
 }
 
 
@@ -167,7 +171,8 @@ class SweepSpec:
         threads: torch CPU threads per run (0: torch's default).
         resolution: marching-cubes resolution.
         eval_density: Chamfer sampling density (world units).
-            (`conf`, `threads`, `resolution`, `eval_density`: None picks `device_defaults`.)
+            (`conf`, `threads`, `views`, `width`, `height`, `resolution`, `eval_density`:
+            None picks `device_defaults`.)
         sample_rays: rays of the sample-distance hook.
         psnr_pixels: at most this many pixels rendered per held-out view
             (`neus_l0.bench.runner.psnr_stride`).
@@ -182,9 +187,9 @@ class SweepSpec:
     seeds: Sequence[int] = (0,)
     conf: str | None = None
     overrides: Sequence[str] = ()
-    views: int = 49
-    width: int = 400
-    height: int = 300
+    views: int | None = None
+    width: int | None = None
+    height: int | None = None
     holdout: int = 8
     device: str = "cpu"
     threads: int | None = None

@@ -42,9 +42,12 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--conf", default=None,
                    help="config shared by every run: demo, fast, wmask, womask or a YAML path "
                         "(default: demo on a CPU, fast on CUDA)")
-    p.add_argument("--views", type=int, default=49, help="views of synthesised scenes (49)")
-    p.add_argument("--width", type=int, default=400, help="width of synthesised scenes (400)")
-    p.add_argument("--height", type=int, default=300, help="height of synthesised scenes (300)")
+    p.add_argument("--views", type=int, default=None,
+                   help="views of synthesised scenes (default: 24 on a CPU, 49 on CUDA)")
+    p.add_argument("--width", type=int, default=None,
+                   help="width of synthesised scenes (default: 200 on a CPU, 400 on CUDA)")
+    p.add_argument("--height", type=int, default=None,
+                   help="height of synthesised scenes (default: 150 on a CPU, 300 on CUDA)")
     p.add_argument("--holdout", type=int, default=8, metavar="K",
                    help="hold out every K-th view (0, K, 2K, ...) from training for PSNR "
                         "(default 8; 0: none)")
