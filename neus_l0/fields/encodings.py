@@ -218,7 +218,8 @@ class HashGridEncoding(Encoding):
         """() float: cells per axis of the finest active level (a tensor, no host sync)."""
         if self.start_level >= self.n_levels:
             return self.res[-1]
-        return self.res[self.active_levels() - 1]
+        # index_select with a tensor index: no host read (compiles without a graph break)
+        return self.res.index_select(0, self.active_levels().reshape(1) - 1).reshape(())
 
     def grid_indices(self, cell: Tensor) -> Tensor:
         """Table rows of the 8 corners of each point's cell, per level.
