@@ -208,3 +208,21 @@ def test_weight_norm_weight_is_cached_without_gradients_only():
         assert not torch.equal(net(x), y1)
         net.load_state_dict({k: v.clone() for k, v in net.state_dict().items()})
         assert layer_weight(lin) is not w2  # load_state_dict too
+
+
+@pytest.mark.parametrize("method", ["analytic", "finite-difference"])
+def test_no_graph_breaks_for_torch_compile(method):
+    """The two methods without double backward trace into one graph (progressive hash grid:
+    the step count and the finest active level stay tensors, no host reads)."""
+    torch._dynamo.reset()
+    net = _net(CASES["grid-progressive-lr"]).float()
+    x = _points(64).float()
+
+    def f(p):
+        out, g = sdf_and_gradient(net, p, create_graph=True, method=method)
+        with torch.no_grad():
+            s = net.sdf(p)
+        return out, g, s
+
+    explained = torch._dynamo.explain(f)(x)
+    assert explained.graph_break_count == 0 and explained.graph_count == 1

@@ -71,12 +71,13 @@ class FrequencyEncoding(Encoding):
         self.out_dim = self.raw_dims + 2 * in_dim * n_freqs
         self.register_buffer("freqs", 2.0 ** torch.arange(n_freqs, dtype=torch.float32),
                              persistent=False)
+        self.register_buffer("freq_col", self.freqs[:, None].clone(), persistent=False)  # (L,1)
 
     def forward(self, x: Tensor) -> Tensor:
         """x (..., in_dim) -> (..., out_dim)."""
         parts = [x] if self.include_input else []
         if self.n_freqs:
-            xf = x[..., None, :] * self.freqs[:, None]  # (..., L, in_dim)
+            xf = x[..., None, :] * self.freq_col  # (..., L, in_dim)
             sc = torch.stack([torch.sin(xf), torch.cos(xf)], dim=-2)  # (..., L, 2, in_dim)
             parts.append(sc.flatten(-3))
         return torch.cat(parts, dim=-1)
@@ -90,10 +91,10 @@ class FrequencyEncoding(Encoding):
         vals = [x] if self.include_input else []
         jacs = [_eye_jacobian(x)] if self.include_input else []
         if self.n_freqs:
-            xf = x[:, None, :] * self.freqs[:, None]  # (N, L, d)
+            xf = x[:, None, :] * self.freq_col  # (N, L, d)
             sin, cos = torch.sin(xf), torch.cos(xf)
             vals.append(torch.stack([sin, cos], dim=-2).flatten(1))  # (N, L * 2 * d)
-            f = self.freqs[:, None]  # (L, 1)
+            f = self.freq_col  # (L, 1)
             dsc = torch.stack([cos * f, -sin * f], dim=-2)  # (N, L, 2, d): d/dx_i of channel i
             eye = torch.eye(d, dtype=x.dtype, device=x.device)[:, None, None, :]  # (d,1,1,d)
             jacs.append((dsc[:, None] * eye).flatten(2))  # (N, d, L * 2 * d)
@@ -194,7 +195,7 @@ class HashGridEncoding(Encoding):
         self.register_buffer("level_mult", mult[:, None, :], persistent=False)  # (L, 1, 3)
         self.register_buffer("level_direct", (torch.arange(n_levels) < self.n_direct)[:, None],
                              persistent=False)  # (L, 1) bool
-        self.register_buffer("level", torch.arange(n_levels), persistent=False)  # (L,)
+        self.register_buffer("level", torch.arange(n_levels)[:, None], persistent=False)  # (L,1)
         # x -> pos = (x / bound) * res / 2 + res / 2 (then clamped to [0, res]), per level
         self.register_buffer("half_res", (res * 0.5)[:, None], persistent=False)  # (L, 1)
         self.register_buffer("pos_max", res[:, None].clone(), persistent=False)  # (L, 1)
@@ -217,7 +218,8 @@ class HashGridEncoding(Encoding):
         """() float: cells per axis of the finest active level (a tensor, no host sync)."""
         if self.start_level >= self.n_levels:
             return self.res[-1]
-        return self.res[self.active_levels() - 1]
+        # index_select with a tensor index: no host read (compiles without a graph break)
+        return self.res.index_select(0, self.active_levels().reshape(1) - 1).reshape(())
 
     def grid_indices(self, cell: Tensor) -> Tensor:
         """Table rows of the 8 corners of each point's cell, per level.
@@ -274,7 +276,7 @@ class HashGridEncoding(Encoding):
         None when all are 1; counts a training pass (see the class docstring)."""
         if self.start_level >= self.n_levels:
             return None if self.lr_scale == 1.0 else self.level_scale.to(x.dtype)
-        w = torch.where(self.level[:, None] < self.active_levels(),
+        w = torch.where(self.level < self.active_levels(),
                         self.level_scale.to(x.dtype), 0.0)  # (L, 1)
         if self.training and torch.is_grad_enabled():
             self.steps += 1
@@ -309,12 +311,13 @@ class HashGridEncoding(Encoding):
         weights = self._level_weights(x)
         raw, pos, frac, v = self._corners(x)
         feats, dfeats = _trilinear_and_derivative(v, frac)  # (N, L, F), (N, L, 3, F)
-        dpos = (raw == pos).to(x.dtype) * self.half_res.to(x.dtype)  # (N, L, 3)
+        gain = self.half_res.to(x.dtype)  # (L, 1): d pos / d x inside the box
         if self.bound != 1.0:
-            dpos = dpos / self.bound
+            gain = gain / self.bound
         if weights is not None:
             feats = feats * weights
-            dpos = dpos * weights
+            gain = gain * weights
+        dpos = torch.where(raw == pos, gain, 0.0)  # (N, L, 3): 0 where the clamp holds
         dfeats = (dfeats * dpos[..., None]).transpose(1, 2).flatten(2)  # (N, 3, L * F)
         vals, jacs = [], []
         if self.raw_dims:
