@@ -221,6 +221,7 @@ class TensorBoard(TrainingCallback):
         from neus_l0.tensorboard_log import TensorBoardLogger
 
         self.logger = TensorBoardLogger(loop.run_dir, purge_step=loop.iteration or None)
+        _ = self.logger.writer  # import and open now: setup, not training time
 
     def on_log(self, loop: TrainLoop, metrics: dict) -> None:
         values = {k: metrics[k] for k in self.SCALARS if k in metrics}
