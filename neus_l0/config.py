@@ -602,18 +602,30 @@ def parse_overrides(items: list[str]) -> dict:
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"override '{item}' conflicts with another override")
+        if node is out and isinstance(node.get(parts[-1]), dict):
+            value = _merge(node[parts[-1]], {"name": value}) if _is_name(parts[-1], value) \
+                else value
         node[parts[-1]] = value
     return out
 
 
 def _shorthand(key: str, value: Any) -> Any:
     """``sampler: NAME`` as the block ``{name: NAME}`` (other keys and values unchanged)."""
-    return {"name": value} if key == "sampler" and isinstance(value, str) else value
+    return {"name": value} if _is_name(key, value) else value
+
+
+def _is_name(key: str, value: Any) -> bool:
+    return key == "sampler" and isinstance(value, str)
 
 
 def _merge(base: dict, extra: dict) -> dict:
+    """`extra` over `base`, recursively. A bare sampler name over a sampler block changes its
+    name only (``sampler=hvs`` keeps the file's ``sampler.pad``), and a block over a bare name
+    keeps that name."""
     out = dict(base)
     for k, v in extra.items():
+        if _is_name(k, v) and isinstance(out.get(k), dict):
+            v = {"name": v}
         if isinstance(v, dict):  # a block merged into a shorthand: expand the shorthand
             out[k] = _shorthand(k, out.get(k))
         if isinstance(v, dict) and isinstance(out.get(k), dict):

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Protocol
 import torch
 from torch import Tensor
 
-from neus_l0.sampling import sample_l0, sample_neus_sections, sample_pdf
+from neus_l0.sampling import sample_l0, sample_neus_sections, sample_pdf, sanitize_weights
 
 if TYPE_CHECKING:  # config imports this module's registry; no cycle at run time
     from neus_l0.config import SamplerConfig
@@ -211,7 +211,7 @@ class L0Sampler:
     mean point weight (implemented by dividing each ray's weights by their mean first, which
     changes nothing else, since the draw does not depend on the weights' scale), so the pad
     holds at most a fraction ``pad / (1 + pad)`` of the draw whatever the weights; ``none``
-    adds nothing.
+    adds nothing. Without blur the pad is added to the point weights directly.
 
     Args:
         name: the registry name. kind: ``exp``, ``inverse`` or ``linear``.
@@ -249,6 +249,8 @@ class L0Sampler:
         if self.pad_mode == "relative":
             mean = w.mean(dim=-1, keepdim=True)  # (B, 1)
             w = w / torch.where(mean > 0, mean, 1.0)
+        if not self.blur and self.pad > 0:  # no maxblur to add the pad: add it here
+            w = sanitize_weights(w) + self.pad
         return t, w
 
     def draw(self, sections: Sections, n_samples: int) -> Tensor:

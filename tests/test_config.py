@@ -126,6 +126,15 @@ def test_sampler_block_and_its_shorthand(tmp_path):
                                                                                     "relative")
     cfg = load_config("wmask", ["sampler.pad_mode=none"])  # the file's name is kept
     assert (cfg.sampler.name, cfg.sampler.pad_mode) == ("hvs", "none")
+    # a bare name over a block changes the name only, in either order
+    for items in (["sampler.pad=0.2", "sampler=l0-linear"], ["sampler=l0-linear",
+                                                             "sampler.pad=0.2"]):
+        s = load_config("wmask", items).sampler
+        assert (s.name, s.pad) == ("l0-linear", 0.2), items
+    p = tmp_path / "block.yaml"
+    p.write_text("sampler: {name: l0, pad_mode: relative, pad: 0.05}\n")
+    s = load_config(str(p), ["sampler=hvs"]).sampler
+    assert (s.name, s.pad_mode, s.pad) == ("hvs", "relative", 0.05)
     assert Config(sampler="hvs").sampler == SamplerConfig(name="hvs")
     assert SamplerConfig(name="l0") != SamplerConfig(name="l0", pad=0.5)
     p = tmp_path / "s.yaml"

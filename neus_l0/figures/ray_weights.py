@@ -172,17 +172,11 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         scale_mat: (4, 4) normalised -> world (uniform scale).
         sampler: the sampler the run trained with (its all-round fine samples are drawn).
     """
-    from neus_l0.rendering import (
-        coarse_z_vals,
-        draw_fine_samples,
-        near_far_from_sphere,
-        render_rays,
-        section_to_point_weights,
-        upsample_section_weights,
-    )
+    from neus_l0.rendering import coarse_z_vals, near_far_from_sphere, render_rays
+    from neus_l0.samplers import build_sampler, upsample_section_weights
     from neus_l0.sampling import maxblur
 
-    r = cfg.render
+    r, sc = cfg.render, cfg.sampler
     s = float(scale_mat[0, 0])
     o = torch.as_tensor((origin - scale_mat[:3, 3]) / s, dtype=torch.float32)[None]
     d = torch.as_tensor(direction, dtype=torch.float32)[None]
@@ -191,13 +185,14 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         z = coarse_z_vals(near, far, r.n_samples, perturb=False)  # (1, N)
         pts = o[:, None] + d[:, None] * z[..., None]  # (1, N, 3)
         sdf = model.sdf.sdf(pts.reshape(-1, 3)).reshape(1, -1)
-        w = upsample_section_weights(z, sdf, pts.norm(dim=-1), 64.0)  # (1, N-1)
+        sections = upsample_section_weights(z, sdf, pts.norm(dim=-1), sc.base_inv_s)
+        w = sections.weights  # (1, N-1)
         per_round = max(1, r.n_importance // max(1, r.up_sample_steps))
-        fine = {name: draw_fine_samples(z, w, per_round, name, r.point_weights,
-                                        r.weights_as_density, r.l0_pad)[0] * s
-                for name in ("hvs", "l0")}
-        t, pw = section_to_point_weights(z, w, r.point_weights, r.weights_as_density)
-        wb = maxblur(pw, pad=r.l0_pad)[0].double()  # (M,)
+        l0 = build_sampler(dataclasses.replace(sc, name="l0", kind="", compile=False))
+        fine = {"hvs": build_sampler("hvs").draw(sections, per_round)[0] * s,
+                "l0": l0.draw(sections, per_round)[0] * s}
+        t, pw = l0.point_weights(sections)
+        wb = maxblur(pw, pad=l0.pad)[0].double() if l0.blur else pw[0].double()  # (M,)
         x, pdf = exp_interpolation(t[0].double(), wb)
         D = (z[0, 1:] - z[0, :-1]).double()
         hvs = w[0].double() / (w[0].double().sum() * D)
