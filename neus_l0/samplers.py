@@ -222,8 +222,8 @@ class L0Sampler:
             ``inverse`` kind's all-zero rays came out non-finite, so it stays eager).
     """
 
-    def __init__(self, name: str = "l0", kind: str = "exp", pad: float = 0.001,
-                 pad_mode: str = "absolute", blur: bool = True, placement: str = "midpoint",
+    def __init__(self, name: str = "l0", kind: str = "exp", pad: float = 0.0,
+                 pad_mode: str = "relative", blur: bool = False, placement: str = "midpoint",
                  as_density: bool = True, base_inv_s: float = 64.0, compile: bool = False):
         if pad_mode not in PAD_MODES:
             raise ValueError(f"unknown pad mode {pad_mode!r} (choose from {PAD_MODES})")

@@ -151,6 +151,8 @@ def test_old_render_keys_map_to_the_sampler_block(tmp_path):
     s = cfg.sampler
     assert (s.name, s.placement, s.as_density, s.pad, s.compile) == ("l0", "endpoint", False,
                                                                      0.01, False)
+    assert (s.blur, s.pad_mode) == (True, "absolute")  # what the old code ran
+    assert (SamplerConfig().blur, SamplerConfig().pad) == (False, 0.0)  # the new default
     assert cfg.render.n_samples == 16
     # the new key wins where both are given; old command-line keys still work
     cfg = load_config(str(p), ["sampler.pad=0.02", "render.weights_as_density=true"])

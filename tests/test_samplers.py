@@ -15,6 +15,7 @@ from neus_l0.samplers import (
     NeuSExactSampler,
     Sections,
     build_sampler,
+    section_to_point_weights,
     up_sample,
     upsample_section_weights,
 )
@@ -83,10 +84,17 @@ def test_relative_pad_holds_a_bounded_share():
 
 def test_l0_sampler_is_sample_l0_on_point_weights():
     sec = _sections()
-    s = L0Sampler(kind="inverse", pad=0.002, placement="endpoint", as_density=False)
+    s = L0Sampler(kind="inverse", pad=0.002, pad_mode="absolute", blur=True,
+                  placement="endpoint", as_density=False)
     t, w = s.point_weights(sec)
     assert t.shape == sec.z.shape
     torch.testing.assert_close(s.draw(sec, 12), sample_l0(t, w, 12, kind="inverse", pad=0.002))
+    plain = L0Sampler()  # the default: no maxblur, no pad
+    t, w = plain.point_weights(sec)
+    torch.testing.assert_close(plain.draw(sec, 12), sample_l0(t, w, 12, blur=False))
+    padded = L0Sampler(pad=0.05, pad_mode="absolute")  # without blur the pad is added
+    t, w = padded.point_weights(sec)
+    torch.testing.assert_close(w, section_to_point_weights(sec.z, sec.weights)[1] + 0.05)
 
 
 def test_compile_is_state_on_the_object():
@@ -150,6 +158,7 @@ def test_up_sample_equals_the_old_rendering_rounds():
     cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2)
     for name in ("hvs", "l0", "l0-linear"):
         old = rendering.up_sample(_Model, o, d, z, cfg, name)
-        new = up_sample(sphere, o, d, z, build_sampler(name), 16, 2)
+        old_l0 = SamplerConfig(name=name, blur=True, pad=cfg.l0_pad, pad_mode="absolute")
+        new = up_sample(sphere, o, d, z, build_sampler(old_l0), 16, 2)
         torch.testing.assert_close(new[0], old[0])
         torch.testing.assert_close(new[1], old[1])

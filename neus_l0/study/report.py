@@ -28,15 +28,20 @@ def _key(r: dict) -> tuple:
     return r["case"], r["regime"], r["budget"]
 
 
+#: Below this value of hvs's metric a ratio to it means nothing (a handful of samples).
+FLOOR = 0.01
+
+
 def relative_to_hvs(rows: list[dict], metric: str = HEADLINE) -> dict[tuple, dict[str, float]]:
-    """(case, regime, budget) -> {sampler: metric / hvs's metric} (inf where hvs has 0)."""
+    """(case, regime, budget) -> {sampler: metric / hvs's metric}; NaN where hvs's metric
+    is below `FLOOR` (e.g. grazing planes at 16+16, where no sampler gets samples within
+    0.01)."""
     hvs = {_key(r): r[metric] for r in rows if r["sampler"] == "hvs"}
     out: dict[tuple, dict[str, float]] = {}
     for r in rows:
         base = hvs[_key(r)]
-        out.setdefault(_key(r), {})[r["sampler"]] = (r[metric] / base if base > 0
-                                                     else float("inf") if r[metric] > 0
-                                                     else 1.0)
+        out.setdefault(_key(r), {})[r["sampler"]] = (r[metric] / base if base >= FLOOR
+                                                     else float("nan"))
     return out
 
 
@@ -63,8 +68,9 @@ def summary(rows: list[dict], metric: str = HEADLINE) -> str:
     pair = paired(rows, metric) if all("_per_ray" in r for r in rows) else {}
     samplers = list(dict.fromkeys(r["sampler"] for r in rows))
     budgets = list(dict.fromkeys(r["budget"] for r in rows))
-    lines = [f"`{metric}` relative to `hvs`: geometric mean over cases and regimes; worst "
-             "case; cases worse / better than hvs by > 2 standard errors (paired per ray)", "",
+    lines = [f"`{metric}` relative to `hvs`: geometric mean over cases and regimes (those "
+             f"where hvs has at least {FLOOR:g}); worst case; number of cases worse / better "
+             "than hvs by > 2 standard errors (paired per ray, all cases)", "",
              "| sampler | " + " | ".join(budgets) + " |",
              "|---|" + "---|" * len(budgets)]
     for s in samplers:
@@ -72,6 +78,9 @@ def summary(rows: list[dict], metric: str = HEADLINE) -> str:
         for b in budgets:
             vals = [(v[s], k) for k, v in rel.items() if k[2] == b and math.isfinite(v[s])
                     and v[s] > 0]
+            if not vals:
+                cells.append("-")
+                continue
             gm = math.exp(sum(math.log(x) for x, _ in vals) / max(1, len(vals)))
             worst, wk = min(vals)
             stats = [v for k, v in pair.items() if k[2] == b and k[3] == s]
@@ -83,7 +92,8 @@ def summary(rows: list[dict], metric: str = HEADLINE) -> str:
 
 
 def plot(path: Path, rows: list[dict], metric: str = HEADLINE) -> Path:
-    """Heat maps of metric / hvs: one panel per regime x budget, cases x samplers."""
+    """Heat maps of log2(metric / hvs), clipped to [-1, 1]: one panel per regime x budget,
+    cases x samplers; grey where hvs's metric is below `FLOOR`."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -94,15 +104,26 @@ def plot(path: Path, rows: list[dict], metric: str = HEADLINE) -> Path:
     samplers = list(dict.fromkeys(r["sampler"] for r in rows))
     cases = list(dict.fromkeys(r["case"] for r in rows))
     panels = list(dict.fromkeys((r["regime"], r["budget"]) for r in rows))
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels) + 2, 0.32 * len(cases)
-                                                      + 2.5), squeeze=False)
-    for ax, (regime, budget) in zip(axes[0], panels):
-        m = np.array([[rel[(c, regime, budget)][s] for s in samplers] for c in cases])
-        im = ax.imshow(np.log2(np.clip(m, 1 / 4, 4)), cmap="RdBu", vmin=-2, vmax=2)
+    regimes = list(dict.fromkeys(p[0] for p in panels))
+    budgets = list(dict.fromkeys(p[1] for p in panels))
+    fig, axes = plt.subplots(len(regimes), len(budgets), squeeze=False,
+                             figsize=(0.28 * len(samplers) * len(budgets) + 3,
+                                      (0.22 * len(cases) + 1.8) * len(regimes) + 0.6))
+    cmap = matplotlib.colormaps["RdBu"].copy()
+    cmap.set_bad("0.85")
+    for (i, regime), (j, budget) in ((a, b) for a in enumerate(regimes)
+                                     for b in enumerate(budgets)):
+        ax = axes[i][j]
+        m = np.array([[rel.get((c, regime, budget), {}).get(s, np.nan) for s in samplers]
+                      for c in cases])
+        im = ax.imshow(np.log2(np.clip(m, 0.5, 2.0)), cmap=cmap, vmin=-1, vmax=1,
+                       aspect="auto")
         ax.set_title(f"{regime}, {budget}", fontsize=9)
-        ax.set_xticks(range(len(samplers)), samplers, rotation=90, fontsize=7)
-        ax.set_yticks(range(len(cases)), cases if ax is axes[0][0] else [], fontsize=7)
-    fig.colorbar(im, ax=axes[0].tolist(), label=f"log2({metric} / hvs)", shrink=0.8)
-    atomic_write(path, lambda p: fig.savefig(p, dpi=110, format="png"))
+        ax.set_xticks(range(len(samplers)), samplers if i == len(regimes) - 1 else [],
+                      rotation=90, fontsize=7)
+        ax.set_yticks(range(len(cases)), cases if j == 0 else [], fontsize=7)
+    fig.colorbar(im, ax=axes.ravel().tolist(), label=f"log2({metric} / hvs); grey: hvs "
+                 f"< {FLOOR:g}", shrink=0.8)
+    atomic_write(path, lambda p: fig.savefig(p, dpi=110, format="png", bbox_inches="tight"))
     plt.close(fig)
     return path

@@ -50,25 +50,27 @@ REGIMES = {"sharp": 1.0, "soft": 0.25}
 FINAL_S = 512.0
 #: Samples per ray of the dense reference.
 DENSE = 4096
-#: The variants compared: label -> sampler settings.
+#: The L0 default before this study: maxblur with the authors' absolute pad 0.001.
+_BLUR = SamplerConfig(name="l0", blur=True, pad=0.001, pad_mode="absolute")
+#: The variants compared: label -> sampler settings (labels without "blur": maxblur off).
 VARIANTS: dict[str, SamplerConfig] = {
     "hvs": SamplerConfig(name="hvs"),
     "neus-exact": SamplerConfig(name="neus-exact"),
-    "l0 abs.001": SamplerConfig(name="l0", pad=0.001, pad_mode="absolute"),
-    "l0 abs.01": SamplerConfig(name="l0", pad=0.01, pad_mode="absolute"),
-    "l0 nopad": SamplerConfig(name="l0", pad_mode="none"),
+    "l0": SamplerConfig(name="l0"),  # the default: no maxblur, no pad
     "l0 rel.01": SamplerConfig(name="l0", pad=0.01, pad_mode="relative"),
-    "l0 rel.1": SamplerConfig(name="l0", pad=0.1, pad_mode="relative"),
-    "l0 noblur": SamplerConfig(name="l0", blur=False, pad_mode="none"),
-    "l0 noblur rel.01": SamplerConfig(name="l0", blur=False, pad=0.01, pad_mode="relative"),
-    "l0 noblur endpoint": SamplerConfig(name="l0", blur=False, pad_mode="none",
-                                        placement="endpoint"),
     "l0 endpoint": SamplerConfig(name="l0", placement="endpoint"),
     "l0 nodensity": SamplerConfig(name="l0", as_density=False),
     "l0-inverse": SamplerConfig(name="l0-inverse"),
     "l0-linear": SamplerConfig(name="l0-linear"),
-    "l0-inverse noblur": SamplerConfig(name="l0-inverse", blur=False, pad_mode="none"),
-    "l0-linear noblur": SamplerConfig(name="l0-linear", blur=False, pad_mode="none"),
+    "l0 blur abs.001": _BLUR,  # the default before the study
+    "l0 blur abs.01": dataclasses.replace(_BLUR, pad=0.01),
+    "l0 blur nopad": dataclasses.replace(_BLUR, pad_mode="none"),
+    "l0 blur rel.01": dataclasses.replace(_BLUR, pad=0.01, pad_mode="relative"),
+    "l0 blur rel.1": dataclasses.replace(_BLUR, pad=0.1, pad_mode="relative"),
+    "l0 blur endpoint": dataclasses.replace(_BLUR, placement="endpoint"),
+    "l0 blur nodensity": dataclasses.replace(_BLUR, as_density=False),
+    "l0-inverse blur": dataclasses.replace(_BLUR, name="l0-inverse"),
+    "l0-linear blur": dataclasses.replace(_BLUR, name="l0-linear"),
 }
 
 
