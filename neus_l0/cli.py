@@ -26,6 +26,7 @@ COMMANDS: list[tuple[str, str]] = [
     ("eval", "evaluate"),
     ("bench", "bench"),
     ("figures", "figures"),
+    ("study", "study"),
 ]
 
 

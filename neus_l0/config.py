@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from typing import Any
 import yaml
 
 from neus_l0.errors import ConfigError
+from neus_l0.samplers import L0_KINDS, PAD_MODES, PLACEMENTS, SAMPLERS
 
 
 def _find_confs_dir() -> Path:
@@ -44,8 +46,13 @@ CONFS_DIR = _find_confs_dir()
 #: ``--conf confs/demo.yaml`` and ``--conf ./confs/demo.yaml`` work from any directory.
 _CONF_PREFIXES = (Path("."), Path("confs"), Path("neus_l0") / "confs")
 
-#: Sampler names accepted by `Config.sampler` (see `neus_l0.rendering.draw_fine_samples`).
-SAMPLERS = ("hvs", "l0", "l0-inverse", "l0-linear")
+#: Old `render.*` sampler keys and the `sampler.*` keys they now mean (`_legacy_sampler`).
+LEGACY_SAMPLER_KEYS: dict[str, str] = {
+    "point_weights": "placement",
+    "weights_as_density": "as_density",
+    "l0_pad": "pad",
+    "compile_sampler": "compile",
+}
 
 
 @dataclass
@@ -215,18 +222,6 @@ class RenderConfig:
     """Samples of the background model outside the unit sphere (0: no background model)."""
     perturb: bool = True
     """Jitter the coarse samples (one random shift per ray) during training."""
-    point_weights: str = "midpoint"
-    """How NeuS's section weights become point weights for the L0 samplers: `midpoint`
-    (weights at section midpoints) or `endpoint` (average of the two adjacent sections at
-    each sample). Ignored by `hvs`, which takes section weights directly."""
-    weights_as_density: bool = True
-    """Divide each section weight by its length (times the mean length) before the L0
-    interpolation, so that point values are densities even when sections are uneven."""
-    l0_pad: float = 0.001
-    """Padding of the maxblur that the L0 samplers add to their (density) point weights. The
-    authors' code uses 0.001, the paper 0.01; with NeuS's section weights 0.01 spreads about
-    a third of the fine samples uniformly along the ray (measured on a sphere), 0.001 keeps
-    them near the surface."""
     white_background: bool = False
     """Composite over white instead of black (no background model)."""
     chunk: int = 1024
@@ -237,12 +232,72 @@ class RenderConfig:
     instead of NeuS's [mid - 1, mid + 1]. Implied by `occupancy.enabled`."""
     occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
     """The occupancy grid (off by default)."""
-    compile_sampler: bool = False
-    """Run the L0 fine-sample draw (``l0``, ``l0-linear``) through `torch.compile` (fused
-    kernels instead of ~50 small ones). Measured on the CPU: the draw alone 1.35x faster, a
-    demo training step 1.05x, against seconds of compilation at start-up
-    (docs/BENCHMARKS.md); not measured on a GPU, where launch overhead makes it likelier to
-    pay. Needs a C++ compiler on the CPU."""
+
+
+@dataclass(eq=False)
+class SamplerConfig:
+    """The fine-sample draw of NeuS's up-sampling (`neus_l0.samplers.build_sampler`).
+
+    In YAML and on the command line a bare name stands for the block with that name and
+    the defaults (``sampler: l0``, ``sampler=hvs``); ``sampler.pad=0.01`` sets one field. The
+    old keys ``render.point_weights``, ``render.weights_as_density``, ``render.l0_pad`` and
+    ``render.compile_sampler`` are still read, as ``sampler.placement``, ``as_density``, ``pad``
+    and ``compile`` (`LEGACY_SAMPLER_KEYS`). A `SamplerConfig` compares equal to its name and
+    prints as it, so code that expected the old string keeps working.
+    """
+
+    name: str = "l0"
+    """`hvs` (NeuS's piecewise constant), `l0` (L0 exponential, the default), `l0-inverse`,
+    `l0-linear` or `neus-exact` (the exact CDF of NeuS's opacity inside each section)."""
+    kind: str = ""
+    """L0 interpolation kind, `exp`, `inverse` or `linear` ("": the name's, e.g. `l0-linear`
+    -> `linear`); only the L0 samplers have one."""
+    pad: float = 0.0
+    """Pad of the L0 samplers' point weights (maxblur's, or added directly without blur; see
+    `pad_mode`). The authors' code uses 0.001, the paper 0.01. Default 0: in the oracle study
+    (docs/BENCHMARKS.md) every pad only moved fine samples away from the surface."""
+    pad_mode: str = "relative"
+    """How `pad` scales: `absolute` (added to the point weights as they are: NeuS's section
+    weights sum to at most 1, so its share of the draw grows as a ray's weight shrinks),
+    `relative` (times the ray's mean point weight: at most pad / (1 + pad) of the draw,
+    whatever the weights) or `none` (no pad)."""
+    blur: bool = False
+    """Apply the L0-Sampler's maxblur (paper eq. 10) to the point weights. Off by default:
+    in the oracle study maxblur, not the pad, is what put fewer fine samples near the surface
+    than `hvs` (0.68x within 0.01 at 16+16; without it 1.12x); `render.l0_pad` in an old
+    config or checkpoint turns it back on (with an absolute pad), as the old code ran."""
+    placement: str = "midpoint"
+    """How NeuS's section weights become point weights for the L0 samplers: `midpoint`
+    (weights at section midpoints) or `endpoint` (average of the two adjacent sections at
+    each sample). Was `render.point_weights`."""
+    as_density: bool = True
+    """Divide each section weight by its length (times the mean length) before the L0
+    interpolation, so that point values are densities even when sections are uneven. Was
+    `render.weights_as_density`."""
+    base_inv_s: float = 64.0
+    """NeuS's fixed sharpness of the first up-sampling round; round i uses base * 2^i."""
+    compile: bool = False
+    """Run the L0 draw (`l0`, `l0-linear`) through `torch.compile` (fused kernels instead of
+    ~50 small ones). Measured on the CPU: the draw alone 1.35x faster, a demo training step
+    1.05x, against seconds of compilation at start-up (docs/BENCHMARKS.md). Needs a C++
+    compiler on the CPU. Was `render.compile_sampler`."""
+
+    def l0_kind(self) -> str:
+        """The L0 interpolation kind in effect (`kind`, else the name's)."""
+        return self.kind or L0_KINDS.get(self.name, "exp")
+
+    def __str__(self) -> str:
+        return self.name
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, str):
+            return self.name == other
+        if isinstance(other, SamplerConfig):
+            return dataclasses.astuple(self) == dataclasses.astuple(other)
+        return NotImplemented
+
+    def __hash__(self) -> int:  # equal to its name, so it hashes like it
+        return hash(self.name)
 
 
 @dataclass
@@ -315,9 +370,8 @@ class DataConfig:
 class Config:
     """A complete run configuration."""
 
-    sampler: str = "l0"
-    """Up-sampling draw: `hvs` (NeuS's piecewise constant), `l0` (exponential, the default),
-    `l0-inverse` or `l0-linear`."""
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    """The up-sampling draw and its settings; a bare name (`sampler: hvs`) sets the name."""
     data: DataConfig = field(default_factory=DataConfig)
     """Scene loading."""
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -326,6 +380,10 @@ class Config:
     """Sampling and compositing."""
     train: TrainConfig = field(default_factory=TrainConfig)
     """Optimisation."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.sampler, str):
+            self.sampler = SamplerConfig(name=self.sampler)
 
 
 # ------------------------------------------------------------------------------------------
@@ -339,6 +397,8 @@ def _type_name(tp: Any) -> str:
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     """Return `value` converted to the annotated type `tp`, or raise `ConfigError`."""
     origin = typing.get_origin(tp)
+    if tp is SamplerConfig and isinstance(value, str):
+        value = {"name": value}  # `sampler: hvs` is short for `sampler: {name: hvs}`
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"{key}: expected a mapping, got {value!r}")
@@ -391,6 +451,8 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 
 def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
     """Build dataclass `cls` from a nested mapping; unknown keys raise `ConfigError`."""
+    if cls is Config:
+        data = _legacy_sampler(data)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = [k for k in data if k not in names]
@@ -409,6 +471,30 @@ def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
     return obj
 
 
+def _legacy_sampler(data: dict) -> dict:
+    """Move the old `render.*` sampler keys (`LEGACY_SAMPLER_KEYS`) into the sampler block.
+
+    The one place where old configs and checkpoints are read: ``render.l0_pad`` becomes
+    ``sampler.pad`` and so on; a bare ``sampler: NAME`` becomes ``{name: NAME}``. Where both
+    spellings are given, the new ``sampler.*`` key wins. ``render.l0_pad`` also sets
+    ``blur: true`` and ``pad_mode: absolute`` (unless given), which is what the old code ran,
+    so old configs and checkpoints keep their meaning.
+    """
+    render = data.get("render")
+    if not isinstance(render, dict) or not any(k in render for k in LEGACY_SAMPLER_KEYS):
+        return data
+    sampler = data.get("sampler", {})
+    sampler = {"name": sampler} if isinstance(sampler, str) else dict(sampler or {})
+    render = dict(render)
+    for old, new in LEGACY_SAMPLER_KEYS.items():
+        if old in render:
+            sampler.setdefault(new, render.pop(old))
+            if old == "l0_pad":  # the old code always blurred, with an absolute pad
+                sampler.setdefault("blur", True)
+                sampler.setdefault("pad_mode", "absolute")
+    return {**data, "render": render, "sampler": sampler}
+
+
 def to_dict(cfg: Any) -> dict:
     """Plain nested dict of a config dataclass (for YAML and checkpoints)."""
     return dataclasses.asdict(cfg)
@@ -419,8 +505,8 @@ def _validate(obj: Any, prefix: str) -> None:
     def bad(name: str, why: str) -> ConfigError:
         return ConfigError(f"{prefix}{name}: {why}")
 
-    if isinstance(obj, Config) and obj.sampler not in SAMPLERS:
-        raise bad("sampler", f"unknown sampler {obj.sampler!r} (choose from {', '.join(SAMPLERS)})")
+    if isinstance(obj, SamplerConfig):
+        _validate_sampler(obj, bad)
     if isinstance(obj, EncodingConfig):
         if obj.kind not in ("frequency", "identity", "hashgrid"):
             raise bad("kind", f"unknown encoding {obj.kind!r} (frequency, identity, hashgrid)")
@@ -444,8 +530,6 @@ def _validate(obj: Any, prefix: str) -> None:
     if isinstance(obj, ColorConfig) and obj.mode not in ("idr", "no_view_dir", "no_normal"):
         raise bad("mode", f"unknown mode {obj.mode!r} (idr, no_view_dir, no_normal)")
     if isinstance(obj, RenderConfig):
-        if obj.point_weights not in ("midpoint", "endpoint"):
-            raise bad("point_weights", f"unknown choice {obj.point_weights!r} (midpoint, endpoint)")
         if obj.n_samples < 2:
             raise bad("n_samples", "must be >= 2")
         if obj.up_sample_steps < 0 or obj.n_importance < 0:
@@ -476,6 +560,30 @@ def _validate(obj: Any, prefix: str) -> None:
     if isinstance(obj, (SDFConfig, ColorConfig, BackgroundConfig)):
         if obj.hidden < 1 or obj.layers < 1:
             raise bad("hidden", "hidden and layers must be >= 1")
+
+
+def _validate_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]) -> None:
+    """Range checks of a `SamplerConfig` (names from the one registry, `samplers.SAMPLERS`)."""
+    if obj.name not in SAMPLERS:
+        raise bad("name", f"unknown sampler {obj.name!r} (choose from {', '.join(SAMPLERS)})")
+    if obj.kind:
+        if obj.name not in L0_KINDS:
+            raise bad("kind", f"sampler {obj.name} has no interpolation kind (only "
+                      f"{', '.join(L0_KINDS)} do)")
+        if obj.kind not in ("exp", "inverse", "linear"):
+            raise bad("kind", f"unknown kind {obj.kind!r} (exp, inverse, linear)")
+        if obj.name != "l0" and obj.kind != L0_KINDS[obj.name]:
+            raise bad("kind", f"{obj.kind} contradicts sampler {obj.name} (set name: l0 and "
+                      f"the kind, or the name alone)")
+    if obj.pad_mode not in PAD_MODES:
+        raise bad("pad_mode", f"unknown choice {obj.pad_mode!r} ({', '.join(PAD_MODES)})")
+    if obj.placement not in PLACEMENTS:
+        raise bad("placement", f"unknown choice {obj.placement!r} ({', '.join(PLACEMENTS)}; "
+                  "formerly render.point_weights)")
+    if not obj.pad >= 0.0:
+        raise bad("pad", "must be >= 0")
+    if not obj.base_inv_s > 0.0:
+        raise bad("base_inv_s", "must be > 0")
 
 
 # ------------------------------------------------------------------------------------------
@@ -521,16 +629,37 @@ def parse_overrides(items: list[str]) -> dict:
         node = out
         parts = key.split(".")
         for part in parts[:-1]:
+            if node is out and isinstance(node.get(part), str):
+                node[part] = _shorthand(part, node[part])  # sampler=l0 sampler.pad=0.1
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"override '{item}' conflicts with another override")
+        if node is out and isinstance(node.get(parts[-1]), dict):
+            value = _merge(node[parts[-1]], {"name": value}) if _is_name(parts[-1], value) \
+                else value
         node[parts[-1]] = value
     return out
 
 
+def _shorthand(key: str, value: Any) -> Any:
+    """``sampler: NAME`` as the block ``{name: NAME}`` (other keys and values unchanged)."""
+    return {"name": value} if _is_name(key, value) else value
+
+
+def _is_name(key: str, value: Any) -> bool:
+    return key == "sampler" and isinstance(value, str)
+
+
 def _merge(base: dict, extra: dict) -> dict:
+    """`extra` over `base`, recursively. A bare sampler name over a sampler block changes its
+    name only (``sampler=hvs`` keeps the file's ``sampler.pad``), and a block over a bare name
+    keeps that name."""
     out = dict(base)
     for k, v in extra.items():
+        if _is_name(k, v) and isinstance(out.get(k), dict):
+            v = {"name": v}
+        if isinstance(v, dict):  # a block merged into a shorthand: expand the shorthand
+            out[k] = _shorthand(k, out.get(k))
         if isinstance(v, dict) and isinstance(out.get(k), dict):
             out[k] = _merge(out[k], v)
         else:

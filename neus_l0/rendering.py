@@ -1,26 +1,14 @@
-"""NeuS volume rendering: sphere bounds, coarse-to-fine up-sampling, unbiased compositing.
+"""NeuS volume rendering: per-ray bounds, coarse samples, up-sampling, unbiased compositing.
 
-The draw of the fine samples in each up-sampling round is made by a sampler chosen by name
-(`SAMPLERS`): ``hvs`` is NeuS's own piecewise-constant inverse CDF
-(`neus_l0.sampling.sample_pdf`), ``l0`` / ``l0-inverse`` / ``l0-linear`` are the L0-Sampler
-with exponential / inverse / linear interpolation (`neus_l0.sampling.sample_l0`).
+The path of one batch: `ray_bounds` (NeuS's [mid - 1, mid + 1], or the unit sphere's chord
+narrowed by a visual hull and an occupancy grid), coarse samples in those bounds,
+NeuS's up-sampling rounds with the fine-sample draw of a `neus_l0.samplers.Sampler`
+(``hvs``, the L0 kinds, ``neus-exact``; how section weights become point weights is
+documented there), the SDF and colour networks at the section midpoints, NeuS's unbiased
+opacity and alpha compositing, optionally blended with the NeRF++ background. The result is
+a `RenderOutput`; the losses are computed from it in `neus_l0.losses`.
 
-Section weights to point weights (L0 only). NeuS's up-sampling weights ``w_j`` belong to the
-sections ``[z_j, z_{j+1}]``; the L0-Sampler interpolates weights given *at points*. We first
-turn each section weight into a density, ``w_j * mean(D) / D_j`` with ``D_j`` the section
-length (``render.weights_as_density``; on the uniform first round this is the identity, and
-after it the sections near the surface are short, so their raw weights understate the
-density there by the ratio of lengths), then place these values either at the section
-midpoints (``render.point_weights = "midpoint"``, the default) or average the two sections
-adjacent to each ``z_j`` (``"endpoint"``). The midpoint placement is the default because it
-keeps the peak of a sharp surface response at one node instead of spreading it over two
-intervals (the average acts as an extra blur on top of the sampler's maxblur), and its
-samples stay inside the sections that carry the weight; in the sphere test
-(`tests/test_rendering.py`) it gives fine samples at least as tight around the surface as
-``endpoint``. The only cost is that the outer halves of the first and last section cannot
-receive samples, which lie far from any surface inside the unit sphere.
-
-Shapes: B rays, N samples per ray along the fine (sorted) `z_vals`.
+Shapes: B rays, N samples per ray along the (sorted) positions `t`.
 """
 
 from __future__ import annotations
@@ -33,19 +21,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neus_l0.config import RenderConfig
+from neus_l0.config import RenderConfig, SamplerConfig
 from neus_l0.fields import NeuSModel, sdf_and_gradient
-from neus_l0.sampling import sample_l0, sample_pdf
+from neus_l0.samplers import SAMPLERS, Sampler, build_sampler, transmittance, up_sample
 
-#: Sampler names and the `sample_l0` kind each uses (None: NeuS's piecewise constant).
-SAMPLER_KINDS: dict[str, str | None] = {
-    "hvs": None,
-    "l0": "exp",
-    "l0-inverse": "inverse",
-    "l0-linear": "linear",
-}
-SAMPLERS = tuple(SAMPLER_KINDS)
-
+__all__ = ["SAMPLERS", "RenderOutput", "RenderNoise", "RayBounds", "render_rays",
+           "render_image", "ray_bounds", "transmittance"]
 
 # ------------------------------------------------------------------------------------------
 # Pure functions.
@@ -119,130 +100,6 @@ def outside_z_vals(far: Tensor, n_outside: int, n_samples: int, perturb: bool,
     return far / torch.flip(s, dims=[-1]) + 1.0 / n_samples
 
 
-def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor, inv_s: float) -> Tensor:
-    """NeuS's up-sampling weights of the sections [z_j, z_{j+1}] at a fixed sharpness.
-
-    The slope of each section is the smaller (steeper descent) of its own and the previous
-    section's, clipped to [-1e3, 0], and zero for sections entirely outside the unit sphere.
-
-    Args:
-        z: (B, N) sorted positions; sdf: (B, N) SDF there; radius: (B, N) distance to the
-            origin there.
-        inv_s: the fixed logistic sharpness (NeuS: 64 * 2^round).
-
-    Returns:
-        (B, N-1) section weights (alpha times transmittance).
-    """
-    inside = (radius[:, :-1] < 1.0) | (radius[:, 1:] < 1.0)  # (B, N-1)
-    prev_sdf, next_sdf = sdf[:, :-1], sdf[:, 1:]
-    dist = z[:, 1:] - z[:, :-1]
-    mid_sdf = 0.5 * (prev_sdf + next_sdf)
-    cos_val = (next_sdf - prev_sdf) / (dist + 1e-5)
-    prev_cos = torch.cat([torch.zeros_like(cos_val[:, :1]), cos_val[:, :-1]], dim=-1)
-    cos_val = torch.minimum(prev_cos, cos_val).clip(-1e3, 0.0) * inside
-    prev_esti = mid_sdf - cos_val * dist * 0.5
-    next_esti = mid_sdf + cos_val * dist * 0.5
-    prev_cdf = torch.sigmoid(prev_esti * inv_s)
-    next_cdf = torch.sigmoid(next_esti * inv_s)
-    alpha = (prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)
-    return alpha * transmittance(alpha)
-
-
-def transmittance(alpha: Tensor) -> Tensor:
-    """Exclusive cumulative product of (1 - alpha + 1e-7) along the last axis (NeuS's).
-
-    Args:
-        alpha: (B, N).
-
-    Returns:
-        (B, N) transmittance before each sample.
-    """
-    ones = torch.ones_like(alpha[:, :1])
-    return torch.cumprod(torch.cat([ones, 1.0 - alpha + 1e-7], dim=-1), dim=-1)[:, :-1]
-
-
-def section_to_point_weights(z: Tensor, section_weights: Tensor, placement: str = "midpoint",
-                             as_density: bool = True) -> tuple[Tensor, Tensor]:
-    """Turn weights of sections [z_j, z_{j+1}] into weights at points for the L0-Sampler.
-
-    Args:
-        z: (B, N) sorted section ends.
-        section_weights: (B, N-1).
-        placement: ``midpoint`` (t = section midpoints, N-1 points) or ``endpoint``
-            (t = z, each point the mean of its adjacent sections, edges replicated).
-        as_density: divide by the section length (times the mean length, so uniform
-            sections are unchanged); lengths below 1e-3 of the mean count as 1e-3 of it.
-
-    Returns:
-        t (B, M) sorted positions and weights (B, M), M = N-1 or N.
-    """
-    w = section_weights
-    if as_density:
-        length = z[:, 1:] - z[:, :-1]  # (B, N-1)
-        mean = length.mean(dim=-1, keepdim=True)
-        w = w * mean / torch.maximum(length, 1e-3 * mean)
-    if placement == "midpoint":
-        return 0.5 * (z[:, 1:] + z[:, :-1]), w
-    if placement == "endpoint":
-        padded = torch.cat([w[:, :1], w, w[:, -1:]], dim=-1)  # (B, N+1)
-        return z, 0.5 * (padded[:, 1:] + padded[:, :-1])
-    raise ValueError(f"unknown point-weight placement {placement!r}")
-
-
-_COMPILED: dict = {}
-
-
-def compiled_sample_l0():
-    """`sample_l0` through `torch.compile` (compiled once per process, dynamic shapes)."""
-    if "l0" not in _COMPILED:
-        _COMPILED["l0"] = torch.compile(sample_l0, dynamic=True)
-    return _COMPILED["l0"]
-
-
-def draw_fine_samples(z: Tensor, section_weights: Tensor, n_samples: int, sampler: str,
-                      placement: str = "midpoint", as_density: bool = True,
-                      pad: float = 0.01, compiled: bool = False) -> Tensor:
-    """Draw one round of fine samples (deterministic, as NeuS) with the named sampler.
-
-    Args:
-        z: (B, N) sorted positions; section_weights: (B, N-1).
-        n_samples: samples to draw per ray.
-        sampler: one of `SAMPLERS`.
-        placement, as_density: see `section_to_point_weights` (L0 samplers only).
-        pad: maxblur padding of the L0 samplers.
-        compiled: draw with `compiled_sample_l0` (``l0`` and ``l0-linear`` only; same
-            result to float rounding). ``l0-inverse`` always draws eagerly: compiled, its
-            all-zero rays came out non-finite (inductor reorders its spike arithmetic).
-
-    Returns:
-        (B, n_samples) sorted, detached, inside the range of the nodes.
-    """
-    if sampler not in SAMPLER_KINDS:
-        raise ValueError(f"unknown sampler {sampler!r} (choose from {', '.join(SAMPLERS)})")
-    kind = SAMPLER_KINDS[sampler]
-    if kind is None:
-        return sample_pdf(z, section_weights, n_samples, det=True)
-    t, w = section_to_point_weights(z, section_weights, placement, as_density)
-    draw = compiled_sample_l0() if compiled and kind in ("exp", "linear") else sample_l0
-    return draw(t, w, n_samples, kind=kind, det=True, pad=pad)
-
-
-def merge_sorted(z: Tensor, new_z: Tensor, values: Tensor | None = None,
-                 new_values: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
-    """Concatenate and sort positions, carrying per-sample values along.
-
-    Args:
-        z: (B, N); new_z: (B, M); values: (B, N) or None; new_values: (B, M) or None.
-
-    Returns:
-        (B, N+M) sorted positions and the values in the same order (or None).
-    """
-    z_all, order = torch.sort(torch.cat([z, new_z], dim=-1), dim=-1)
-    if values is None or new_values is None:
-        return z_all, None
-    return z_all, torch.gather(torch.cat([values, new_values], dim=-1), -1, order)
-
-
 def cos_anneal_alpha(sdf: Tensor, true_cos: Tensor, dists: Tensor, inv_s: Tensor,
                      cos_anneal_ratio: float) -> Tensor:
     """NeuS's unbiased discrete opacity of the sections around mid-points.
@@ -268,46 +125,10 @@ def cos_anneal_alpha(sdf: Tensor, true_cos: Tensor, dists: Tensor, inv_s: Tensor
 # Rendering with the networks.
 
 
-def up_sample(model: NeuSModel, origins: Tensor, dirs: Tensor, z: Tensor, cfg: RenderConfig,
-              sampler: str) -> tuple[Tensor, Tensor]:
-    """NeuS's coarse-to-fine rounds (no gradient); the draw uses `sampler`.
-
-    Args:
-        model: the networks (only `model.sdf` is used).
-        origins, dirs: (B, 3).
-        z: (B, n_samples) coarse positions.
-        cfg: `n_importance`, `up_sample_steps`, and the point-weight options.
-        sampler: one of `SAMPLERS`.
-
-    Returns:
-        z_all: (B, n_samples + n_importance) sorted positions; z_new: (B, n_importance)
-        the up-sampled positions alone, in the order drawn (sorted within each round).
-    """
-    steps = cfg.up_sample_steps
-    if cfg.n_importance == 0 or steps == 0:
-        return z, z[:, :0]
-    per_round = cfg.n_importance // steps
-    B = z.shape[0]
-    new_all = []
-    with torch.no_grad():
-        pts = origins[:, None, :] + dirs[:, None, :] * z[..., None]  # (B, N, 3)
-        sdf = model.sdf.sdf(pts.reshape(-1, 3)).float().reshape(B, z.shape[1])
-        radius = pts.norm(dim=-1)
-        for i in range(steps):
-            w = upsample_section_weights(z, sdf, radius, 64.0 * 2**i)  # (B, N-1)
-            new_z = draw_fine_samples(z, w, per_round, sampler, cfg.point_weights,
-                                      cfg.weights_as_density, cfg.l0_pad,
-                                      cfg.compile_sampler)
-            new_all.append(new_z)
-            if i + 1 == steps:
-                z, _ = merge_sorted(z, new_z)
-            else:
-                new_pts = origins[:, None, :] + dirs[:, None, :] * new_z[..., None]
-                new_sdf = model.sdf.sdf(new_pts.reshape(-1, 3)).float().reshape(B, per_round)
-                z_all, sdf = merge_sorted(z, new_z, sdf, new_sdf)
-                _, radius = merge_sorted(z, new_z, radius, new_pts.norm(dim=-1))
-                z = z_all
-    return z, torch.cat(new_all, dim=-1)
+def as_sampler(sampler: Sampler | SamplerConfig | str) -> Sampler:
+    """A `Sampler` (built from a config or a name when not one already; build once per run
+    where it matters: a compiled draw compiles at its first use)."""
+    return sampler if hasattr(sampler, "draw") else build_sampler(sampler)
 
 
 def background_alpha_color(model: NeuSModel, origins: Tensor, dirs: Tensor, z: Tensor,
@@ -464,7 +285,8 @@ class RenderOutput:
 
 
 def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
-                cfg: RenderConfig, sampler: str, cos_anneal_ratio: float | Tensor,
+                cfg: RenderConfig, sampler: Sampler | SamplerConfig | str,
+                cos_anneal_ratio: float | Tensor,
                 noise: RenderNoise | None, create_graph: bool) -> dict[str, Tensor]:
     """Samples in [near, far], up-sampling, and the SDF / colour networks on them.
 
@@ -480,7 +302,8 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, f
     B = origins.shape[0]
     t = coarse_z_vals(near, far, cfg.n_samples, noise is not None,
                       noise=None if noise is None else noise.coarse)
-    t, t_fine = up_sample(model, origins, dirs, t, cfg, sampler)
+    t, t_fine = up_sample(lambda p: model.sdf.sdf(p).float(), origins, dirs, t,
+                          as_sampler(sampler), cfg.n_importance, cfg.up_sample_steps)
     N = t.shape[1]
     last = (far - near) / cfg.n_samples  # (B, 1) NeuS's 2 / n_samples on its own bounds
     dists = torch.cat([t[:, 1:] - t[:, :-1], last], dim=-1)
@@ -520,7 +343,8 @@ def _with_background(model: NeuSModel, origins: Tensor, dirs: Tensor, fg: dict[s
 
 
 def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-                sampler: str = "l0", *, cos_anneal_ratio: float | Tensor = 1.0,
+                sampler: Sampler | SamplerConfig | str = "l0", *,
+                cos_anneal_ratio: float | Tensor = 1.0,
                 perturb: bool = False, generator: torch.Generator | None = None,
                 create_graph: bool = False, occupancy: RayBounds | None = None,
                 bounds: Sequence[RayBounds] = (),
@@ -540,7 +364,8 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         model: the networks; `model.background` is used when `cfg.n_outside > 0`.
         origins, dirs: (B, 3) in the normalised frame, unit `dirs`.
         cfg: sampling and compositing settings.
-        sampler: the up-sampling draw, one of `SAMPLERS`.
+        sampler: the up-sampling draw: a `neus_l0.samplers.Sampler`, or a `SamplerConfig`
+            or name to build one from (build it once and pass the object in loops).
         cos_anneal_ratio: NeuS's cos annealing (1: unbiased).
         perturb: jitter the coarse (and background) samples, drawing from `generator`.
         generator: random source of the jitter.
@@ -590,7 +415,8 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
 
 
 def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-                 sampler: str = "l0", cos_anneal_ratio: float = 1.0,
+                 sampler: Sampler | SamplerConfig | str = "l0",
+                 cos_anneal_ratio: float = 1.0,
                  chunk: int | None = None, occupancy: RayBounds | None = None,
                  bounds: Sequence[RayBounds] = ()) -> dict[str, Tensor]:
     """Render whole images in chunks of rays, without jitter or training graph.
@@ -624,6 +450,7 @@ def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderCon
         "weight_sum": torch.zeros(o.shape[0], 1, device=o.device),
     }
     chunk = chunk or cfg.chunk
+    sampler = as_sampler(sampler)
     for start in range(0, idx.shape[0], chunk):
         rows = idx[start:start + chunk]
         with torch.no_grad():

@@ -38,16 +38,38 @@ float64 quadrature reference): ``expm1(L)`` is computed without a transcendental
 ``a E / L`` equal their limits ``q`` and ``a`` to within 1e-19. Every closed form is exact
 to rounding for ``L != 0``, so no series is needed there. Flushing sub-normal weights bounds
 ``|L|`` by ln(1/tiny) (87 in float32), so no exponential overflows.
+
+``sample_neus_sections`` draws from NeuS's own opacity instead of an interpolant of the
+weights. Section j, ``[z_j, z_{j+1}]``, carries the mass ``weights_j``; inside it NeuS's linear
+SDF estimate runs from ``p = prev_sdf_j`` to ``n = next_sdf_j``, ``e(s) = p + (n - p) s``, and
+with the logistic ``Phi(v) = sigmoid(inv_s v)`` the opacity below ``s`` is
+
+    F(s) = (Phi(p) - Phi(e(s))) / (Phi(p) - Phi(n)).
+
+With ``x = inv_s p``, ``y = inv_s n``, ``d = x - y >= 0`` and ``Delta = x - logit(...)`` the
+quantile ``s(q) = Delta / d`` has the closed form (derived from the odds; no difference of
+sigmoids is ever formed)
+
+    Delta = log1p(A) - log1p(-B),  A = q expm1(d) sigmoid(y),  B = q (-expm1(-d)) sigmoid(-y),
+
+both terms non-negative, so no cancellation, and ``Delta`` keeps its relative precision as
+``d -> 0`` (``s -> q``, the uniform limit, is reached without a series). For ``d >= 1`` the same
+terms are taken in log space (``log A = log q + d + log(-expm1(-d)) + logsigmoid(y)`` and
+``1 - B = (1 - q) + q e^-d + q (1 - e^-d) sigmoid(y)``, a sum of non-negative terms), so no
+exponential overflows at any sharpness. ``d < 0`` (an SDF that grows along the ray) is the
+mirror image, ``s(q; x, y) = 1 - s(1 - q; y, x)``; ``d == 0`` (or a non-finite estimate) is
+uniform.
 """
 
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
-    "KINDS", "maxblur", "piece_inverse_cdf", "piece_mass", "quantiles", "sample_l0",
-    "sample_pdf", "sanitize_weights",
+    "KINDS", "maxblur", "neus_section_inverse_cdf", "piece_inverse_cdf", "piece_mass",
+    "quantiles", "sample_l0", "sample_neus_sections", "sample_pdf", "sanitize_weights",
 ]
 
 #: Interpolation kinds accepted by :func:`sample_l0`.
@@ -462,3 +484,90 @@ def piece_inverse_cdf(a: Tensor, b: Tensor, q: Tensor, kind: str) -> Tensor:
         series = q + q * (1.0 - q) * L * (0.5 + (1.0 - 2.0 * q) * L / 12.0)
     s = torch.where(small, series, closed)
     return torch.where(positive, s, q).clamp(0.0, 1.0)
+
+
+# ----------------------------------------------------------------------------- NeuS sections
+
+
+def neus_section_inverse_cdf(x: Tensor, y: Tensor, q: Tensor) -> Tensor:
+    """Position s in [0, 1] below which a NeuS section holds the fraction q of its opacity.
+
+    The section's logit runs linearly from ``x = inv_s * prev_sdf`` (s = 0) to
+    ``y = inv_s * next_sdf`` (s = 1); the opacity density is ``sigmoid'(x + (y - x) s)``.
+    See the module notes for the closed form and why it is stable.
+
+    Args:
+        x: (...) logit at the start of the section.
+        y: (...) logit at its end.
+        q: (...) opacity fractions in [0, 1].
+
+    Returns:
+        (...) s in [0, 1]; uniform (s = q) where x == y or x, y are not finite.
+    """
+    x, y, q = torch.broadcast_tensors(x, y, q)
+    swap = y > x  # the mirror image: s(q; x, y) = 1 - s(1 - q; y, x)
+    hi, lo = torch.where(swap, y, x), torch.where(swap, x, y)
+    q = torch.where(swap, 1.0 - q, q)
+    d = hi - lo  # (...) >= 0, or NaN
+    ok = torch.isfinite(d) & (d >= torch.finfo(d.dtype).tiny)
+    d = torch.where(ok, d, 1.0)
+    lo = torch.where(ok, lo, 0.0)
+    small = d < 1.0
+    ds = torch.where(small, d, 0.0)  # d < 1: direct, no overflow, B <= 1 - 1/e
+    A = q * torch.expm1(ds) * torch.sigmoid(lo)
+    B = q * -torch.expm1(-ds) * torch.sigmoid(-lo)
+    near = torch.log1p(A) - torch.log1p(-B)
+    dl = torch.where(small, 1.0, d)  # d >= 1: log space
+    log_m = torch.log(-torch.expm1(-dl))  # log(1 - e^-d), in [log(1 - 1/e), 0]
+    log_q, log_q1, log_sy = torch.log(q), torch.log1p(-q), F.logsigmoid(lo)
+    log_a = log_q + dl + log_m + log_sy
+    log_1mb = torch.logsumexp(torch.stack([log_q1, log_q - dl, log_q + log_m + log_sy]), 0)
+    far = F.softplus(log_a) - log_1mb
+    s = (torch.where(small, near, far) / d).clamp(0.0, 1.0)
+    s = torch.where(ok, s, q)
+    return torch.where(swap, 1.0 - s, s)
+
+
+@torch.no_grad()
+def sample_neus_sections(z: Tensor, weights: Tensor, prev_sdf: Tensor, next_sdf: Tensor,
+                         inv_s: float | Tensor, n_samples: int, det: bool = True,
+                         generator: torch.Generator | None = None) -> Tensor:
+    """Inverse transform of NeuS's own opacity: section masses, then the exact CDF inside.
+
+    Args:
+        z: (..., N) sorted section ends, N >= 2.
+        weights: (..., N-1) mass of each section [z_j, z_{j+1}] (any values; see the module
+            notes: non-finite and negative count as zero, a ray without mass is uniform).
+        prev_sdf, next_sdf: (..., N-1) NeuS's linear SDF estimate at the start and end of
+            each section (`prev_esti` / `next_esti` of its up-sampling).
+        inv_s: the logistic sharpness, a number or a tensor broadcastable to (..., N-1).
+        n_samples: n, samples per ray.
+        det: midpoint quantiles ``(k + 0.5) / n`` instead of stratified random ones.
+        generator: random source for ``det=False``.
+
+    Returns:
+        (..., n) sorted samples inside [z_0, z_{N-1}], without gradient.
+    """
+    N = z.shape[-1]
+    if N < 2:
+        raise ValueError("sample_neus_sections needs at least two section ends (N >= 2)")
+    for name, v in (("weights", weights), ("prev_sdf", prev_sdf), ("next_sdf", next_sdf)):
+        if v.shape != (*z.shape[:-1], N - 1):
+            raise ValueError(f"z (..., N) and {name} (..., N-1) disagree: "
+                             f"{tuple(z.shape)} vs {tuple(v.shape)}")
+    batch = z.shape[:-1]
+    dtype = z.dtype
+    z = z.detach().reshape(-1, N)  # (R, N)
+    w = _prepare_weights(weights.reshape(-1, N - 1), dtype, False, 0.0)  # (R, N-1)
+    k = torch.as_tensor(inv_s, dtype=dtype, device=z.device).detach()
+    x = (prev_sdf.detach().to(dtype) * k).expand(*batch, N - 1).reshape(-1, N - 1)
+    y = (next_sdf.detach().to(dtype) * k).expand(*batch, N - 1).reshape(-1, N - 1)
+    d = (z[:, 1:] - z[:, :-1]).clamp_min(0)  # (R, N-1)
+    lo, hi, degenerate = _cdf(w, d)
+    u = quantiles((z.shape[0],), n_samples, det, generator, dtype, z.device)  # (R, n)
+    idx = _locate(hi, u)
+    q = _fraction(u, lo, _inverse_width(lo, hi), idx)
+    s = neus_section_inverse_cdf(torch.gather(x, -1, idx), torch.gather(y, -1, idx), q)
+    s = torch.where(degenerate, q, s)  # a ray without mass: uniform inside each section too
+    out = torch.addcmul(torch.gather(z[:, :-1], -1, idx), s, torch.gather(d, -1, idx))
+    return _finish(out, z).reshape(*batch, n_samples)

@@ -64,6 +64,7 @@ from neus_l0.occupancy import OccupancyGrid
 from neus_l0.pixel_pool import PixelPool, reachable_pixels
 from neus_l0.rendering import RenderNoise, draw_noise, render_rays
 from neus_l0.runlock import RunLock
+from neus_l0.samplers import build_sampler
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
 from neus_l0.validation import validation_image, validation_views  # noqa: F401 (moved)
 
@@ -300,7 +301,7 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     bounds = tuple(setup.bounds) + ((occupancy,) if occupancy is not None else ())
     # render and loss
     step_fn = setup.compiled or render_and_loss
-    sampler = cfg.sampler if setup.sampler is None else setup.sampler
+    sampler = build_sampler(cfg.sampler) if setup.sampler is None else setup.sampler
     loss, metrics = step_fn(model, inputs, cfg, sampler, bounds)
     # backward and update
     optimizer.zero_grad(set_to_none=True)
@@ -451,6 +452,7 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
                      generator=torch.Generator(device=device),
                      occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
     loop.generator.manual_seed(cfg.train.seed)
+    loop.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
     loop.setup.pool = reachable_pixels(scene, cfg.render, loop.setup.bounds,
                                        background=model.background is not None)
     loop.setup.compiled = compiled_step(render_and_loss, cfg, device)

@@ -126,7 +126,7 @@ def test_tool_end_to_end(tiny_scene, tmp_path, capsys):
         run = out / "runs" / f"demo__{arm}"
         ev = json.loads((run / "eval.json").read_text())
         assert ev["label"] == arm and ev["spec"]["snapshots"] == [budget / 2, budget]
-        assert ev["spec"]["config"]["sampler"] == ("l0" if arm == "fast" else "hvs")
+        assert ev["spec"]["config"]["sampler"]["name"] == ("l0" if arm == "fast" else "hvs")
         curve = ev["curve"]
         assert len(curve) == 2  # the half-budget snapshot, then the final model
         assert curve[0]["seconds"] >= budget / 2 and curve[0]["iteration"] > 0

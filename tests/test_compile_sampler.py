@@ -1,4 +1,4 @@
-"""`render.compile_sampler`: the compiled L0 draw against the eager one.
+"""`sampler.compile` (was `render.compile_sampler`): the compiled L0 draw against the eager one.
 
 Compilation costs seconds per (kind, pad, shape family), so the default run checks the
 configuration training uses (``exp``, pad 0.001, two batch shapes through one dynamic graph)
@@ -8,14 +8,14 @@ on adversarial weights; the slow test covers ``linear`` and pad 0 as well.
 import pytest
 import torch
 
-from neus_l0.rendering import SAMPLERS, compiled_sample_l0, draw_fine_samples
+from neus_l0.samplers import SAMPLERS, L0Sampler, Sections, build_sampler
 from neus_l0.sampling import sample_l0
 
 
 @pytest.fixture(scope="module")
 def compiled():
     pytest.importorskip("torch._inductor")
-    return compiled_sample_l0()
+    return L0Sampler(kind="exp", compile=True)._draw
 
 
 def _adversarial(B: int, N: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -52,11 +52,15 @@ def test_compiled_linear_and_unpadded_draws_equal_eager(compiled):
     _check(compiled, ["exp", "linear"], [0.0, 0.001, 0.01], [(8, 6), (16, 9), (64, 65)])
 
 
-def test_draw_fine_samples_compiled_switch(compiled):
+def test_the_compiled_sampler_draws_as_the_eager_one(compiled):
+    from neus_l0.config import SamplerConfig
+
     g = torch.Generator().manual_seed(1)
     z = torch.sort(torch.rand(16, 9, generator=g), dim=-1).values
     w = torch.rand(16, 8, generator=g)
-    for sampler in SAMPLERS:  # l0-inverse falls back to the eager draw
-        a = draw_fine_samples(z, w, 8, sampler, pad=0.001)
-        b = draw_fine_samples(z, w, 8, sampler, pad=0.001, compiled=sampler != "l0-linear")
-        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-5)
+    sec = Sections(z=z, weights=w, prev_sdf=torch.zeros_like(w), next_sdf=-torch.ones_like(w),
+                   inv_s=64.0)
+    for name in SAMPLERS:  # l0-inverse, hvs and neus-exact stay eager
+        a = build_sampler(SamplerConfig(name=name, pad=0.001)).draw(sec, 8)
+        b = build_sampler(SamplerConfig(name=name, pad=0.001, compile=True)).draw(sec, 8)
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)

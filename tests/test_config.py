@@ -8,6 +8,7 @@ from neus_l0.config import (
     CONFS_DIR,
     SAMPLERS,
     Config,
+    SamplerConfig,
     config_from_dict,
     dump_config,
     load_config,
@@ -161,7 +162,70 @@ def test_every_builtin_config_loads():
         assert load_config(c.stem).sampler in SAMPLERS
 
 
-def test_samplers_agree_with_renderer():
-    from neus_l0.rendering import SAMPLERS as R
+def test_one_registry_of_sampler_names():
+    from neus_l0.samplers import REGISTRY
+    from neus_l0.samplers import SAMPLERS as S
 
-    assert tuple(SAMPLERS) == tuple(R)
+    assert SAMPLERS is S and tuple(S) == tuple(REGISTRY)
+    assert {"hvs", "l0", "l0-inverse", "l0-linear", "neus-exact"} <= set(S)
+
+
+def test_sampler_block_and_its_shorthand(tmp_path):
+    cfg = load_config("wmask", ["sampler=l0-linear"])
+    assert isinstance(cfg.sampler, SamplerConfig) and cfg.sampler.name == "l0-linear"
+    assert cfg.sampler == "l0-linear" and str(cfg.sampler) == "l0-linear"
+    assert cfg.sampler.l0_kind() == "linear" and cfg.sampler.pad == SamplerConfig().pad
+    cfg = load_config("demo", ["sampler.pad=0.05", "sampler.pad_mode=relative"])
+    assert cfg.sampler.name == "l0" and (cfg.sampler.pad, cfg.sampler.pad_mode) == (0.05,
+                                                                                    "relative")
+    cfg = load_config("wmask", ["sampler.pad_mode=none"])  # the file's name is kept
+    assert (cfg.sampler.name, cfg.sampler.pad_mode) == ("hvs", "none")
+    # a bare name over a block changes the name only, in either order
+    for items in (["sampler.pad=0.2", "sampler=l0-linear"], ["sampler=l0-linear",
+                                                             "sampler.pad=0.2"]):
+        s = load_config("wmask", items).sampler
+        assert (s.name, s.pad) == ("l0-linear", 0.2), items
+    p = tmp_path / "block.yaml"
+    p.write_text("sampler: {name: l0, pad_mode: relative, pad: 0.05}\n")
+    s = load_config(str(p), ["sampler=hvs"]).sampler
+    assert (s.name, s.pad_mode, s.pad) == ("hvs", "relative", 0.05)
+    assert Config(sampler="hvs").sampler == SamplerConfig(name="hvs")
+    assert SamplerConfig(name="l0") != SamplerConfig(name="l0", pad=0.5)
+    p = tmp_path / "s.yaml"
+    p.write_text("sampler: {name: l0, kind: inverse, blur: false}\n")
+    s = load_config(str(p)).sampler
+    assert (s.l0_kind(), s.blur) == ("inverse", False)
+
+
+def test_old_render_keys_map_to_the_sampler_block(tmp_path):
+    p = tmp_path / "old.yaml"
+    p.write_text("sampler: l0\nrender: {point_weights: endpoint, weights_as_density: false, "
+                 "l0_pad: 0.01, compile_sampler: false, n_samples: 16}\n")
+    cfg = load_config(str(p))
+    s = cfg.sampler
+    assert (s.name, s.placement, s.as_density, s.pad, s.compile) == ("l0", "endpoint", False,
+                                                                     0.01, False)
+    assert (s.blur, s.pad_mode) == (True, "absolute")  # what the old code ran
+    assert (SamplerConfig().blur, SamplerConfig().pad) == (False, 0.0)  # the new default
+    assert cfg.render.n_samples == 16
+    # the new key wins where both are given; old command-line keys still work
+    cfg = load_config(str(p), ["sampler.pad=0.02", "render.weights_as_density=true"])
+    assert cfg.sampler.pad == 0.02 and cfg.sampler.as_density is True
+    assert cfg.sampler.placement == "endpoint"
+    assert config_from_dict(to_dict(cfg)) == cfg
+
+
+@pytest.mark.parametrize("override, words", [
+    (["sampler.kind=cubic"], ["sampler.kind", "cubic"]),
+    (["sampler=hvs", "sampler.kind=exp"], ["sampler.kind", "hvs"]),
+    (["sampler=l0-inverse", "sampler.kind=linear"], ["contradicts"]),
+    (["sampler.pad_mode=fraction"], ["sampler.pad_mode", "relative"]),
+    (["sampler.pad=-1"], ["sampler.pad"]),
+    (["sampler.base_inv_s=0"], ["base_inv_s"]),
+    (["sampler.name=nope"], ["sampler.name", "nope", "neus-exact"]),
+])
+def test_bad_sampler_settings_name_the_key(override, words):
+    with pytest.raises(ConfigError) as exc:
+        load_config("demo", override)
+    for w in words:
+        assert w in str(exc.value)

@@ -17,6 +17,8 @@ def tiny_grid(**kw) -> HashGridEncoding:
     args = dict(n_levels=3, n_features=2, log2_hashmap_size=6, base_resolution=2,
                 per_level_scale=2.0, init_scale=1.0)
     args.update(kw)
+    if "start_level" in args or "update_steps" in args:
+        args["progressive"] = (args.pop("start_level", None), args.pop("update_steps", 1000))
     torch.manual_seed(0)
     return HashGridEncoding(3, **args).double()
 

@@ -12,14 +12,17 @@ from neus_l0.losses import eikonal
 from neus_l0.rendering import (
     SAMPLERS,
     coarse_z_vals,
-    draw_fine_samples,
-    merge_sorted,
     near_far_from_sphere,
     outside_z_vals,
     render_image,
     render_rays,
-    section_to_point_weights,
     transmittance,
+)
+from neus_l0.samplers import (
+    Sections,
+    build_sampler,
+    merge_sorted,
+    section_to_point_weights,
     upsample_section_weights,
 )
 
@@ -98,7 +101,7 @@ def test_upsample_weights_peak_at_the_surface():
     z = torch.linspace(0.0, 2.0, 65)[None]  # a ray through the centre from distance 1
     sdf = (z - 1.0).abs() - RADIUS  # surface at z = 0.5 and 1.5
     radius = (z - 1.0).abs()
-    w = upsample_section_weights(z, sdf, radius, 64.0)
+    w = upsample_section_weights(z, sdf, radius, 64.0).weights
     assert w.shape == (1, 64)
     mids = 0.5 * (z[:, 1:] + z[:, :-1])
     assert (mids[0, w[0].argmax()] - 0.5).abs() < 2.0 / 64
@@ -135,7 +138,9 @@ def test_section_to_point_weights():
 def test_draw_fine_samples_inside_range_and_sorted(sampler):
     z = torch.sort(torch.rand(32, 20), dim=-1).values
     w = torch.rand(32, 19)
-    s = draw_fine_samples(z, w, 16, sampler)
+    sec = Sections(z=z, weights=w, prev_sdf=torch.rand(32, 19), next_sdf=-torch.rand(32, 19),
+                   inv_s=64.0)
+    s = build_sampler(sampler).draw(sec, 16)
     assert s.shape == (32, 16) and torch.isfinite(s).all()
     assert (s[:, 1:] >= s[:, :-1]).all()
     assert (s >= z[:, :1] - 1e-6).all() and (s <= z[:, -1:] + 1e-6).all()
@@ -143,7 +148,7 @@ def test_draw_fine_samples_inside_range_and_sorted(sampler):
 
 def test_unknown_sampler():
     with pytest.raises(ValueError, match="unknown sampler"):
-        draw_fine_samples(torch.rand(2, 4).sort().values, torch.rand(2, 3), 4, "nope")
+        build_sampler("nope")
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)

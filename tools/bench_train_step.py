@@ -20,10 +20,9 @@ Variants: ``baseline`` (NeuS), ``sphere`` (`render.cull_outside_sphere`), ``grid
 (`render.occupancy.enabled`), ``grid+eik0.25`` (also `train.eikonal_fraction=0.25`),
 ``eik0.25`` alone, and on CUDA ``amp-bf16`` / ``amp-fp16`` and ``grid+amp-bf16``. With
 ``--compile`` a ``compile-color`` variant runs the colour network through `torch.compile`,
-and ``compile-sampler`` the fine-sample draw (`neus_l0.sampling.sample_l0` as the rendering
-calls it, ``dynamic=True`` since the number of active rays varies)
-(the SDF network cannot be: its gradient is taken with ``create_graph=True`` and dynamo's
-AOT autograd does not support double backward).
+``compile-sampler`` the fine-sample draw (`sampler.compile`), and ``compile-step`` the whole
+render and loss (`train.compile`, with the analytic SDF gradient, whose eager cost is the
+``analytic`` variant; ``finite-difference`` is the other double-backward-free gradient).
 """
 
 from __future__ import annotations
@@ -40,14 +39,18 @@ from pathlib import Path
 
 import torch
 
+from neus_l0.compile_step import compiled_step
 from neus_l0.config import load_config
 from neus_l0.data.scene import load_scene
 from neus_l0.data.synthetic import make_scene
+from neus_l0.samplers import build_sampler
 from neus_l0.train import (
+    StepSetup,
     make_model,
     make_occupancy,
     make_optimizer,
     make_scaler,
+    render_and_loss,
     train_step,
 )
 
@@ -58,6 +61,8 @@ def variants(device: str, compile_: bool) -> dict[str, list[str]]:
         "sphere": ["render.cull_outside_sphere=true"],
         "grid": ["render.occupancy.enabled=true"],
         "eik0.25": ["train.eikonal_fraction=0.25"],
+        "analytic": ["model.sdf.gradient=analytic"],
+        "finite-difference": ["model.sdf.gradient=finite-difference"],
         "grid+eik0.25": ["render.occupancy.enabled=true", "train.eikonal_fraction=0.25"],
     }
     if device == "cuda":
@@ -66,7 +71,8 @@ def variants(device: str, compile_: bool) -> dict[str, list[str]]:
         v["grid+amp-bf16"] = ["render.occupancy.enabled=true", "train.amp=bf16"]
     if compile_:
         v["compile-color"] = []
-        v["compile-sampler"] = []
+        v["compile-sampler"] = ["sampler.compile=true"]
+        v["compile-step"] = ["train.compile=true", "model.sdf.gradient=analytic"]
     return v
 
 
@@ -135,36 +141,33 @@ def main() -> None:
             return f(x)
 
         m.sdf.sdf = counted_sdf
+        setup = StepSetup(sampler=build_sampler(cfg.sampler),
+                          compiled=compiled_step(render_and_loss, cfg, device))
         runs[name] = {"cfg": cfg, "model": m, "opt": o, "scaler": make_scaler(cfg, device),
+                      "setup": setup,
                       "grid": make_occupancy(cfg, device), "counter": counter,
                       "gen": torch.Generator(device=device).manual_seed(1),
                       "its": [], "points": 0, "losses": [], "active": [], "it": args.warm}
         # one untimed step (grid update at the first step, compilation, allocator warm-up)
         r = runs[name]
         train_step(m, o, scene, cfg, args.warm - args.warm % cfg.render.occupancy.update_every,
-                   r["gen"], occupancy=r["grid"], scaler=r["scaler"])
-    import neus_l0.rendering as rendering_module
-
-    eager_sampler = rendering_module.sample_l0
-    compiled_sampler = torch.compile(eager_sampler, dynamic=True) if args.compile else None
+                   r["gen"], occupancy=r["grid"], scaler=r["scaler"], setup=setup)
     for _ in range(args.rounds):
-        for name, r in runs.items():
+        for r in runs.values():
             cfg, m = r["cfg"], r["model"]
-            rendering_module.sample_l0 = (compiled_sampler if name == "compile-sampler"
-                                          else eager_sampler)
             r["counter"]["points"] = 0
             losses = []
             sync()
             t0 = time.perf_counter()
             for _ in range(args.steps):
                 losses.append(train_step(m, r["opt"], scene, cfg, r["it"], r["gen"],
-                                         occupancy=r["grid"], scaler=r["scaler"]))
+                                         occupancy=r["grid"], scaler=r["scaler"],
+                                         setup=r["setup"]))
                 r["it"] += 1
             sync()
             r["its"].append(args.steps / (time.perf_counter() - t0))
             r["points"] = r["counter"]["points"] / args.steps
             r["losses"].append(torch.stack(losses)[:, 0].mean().item())
-    rendering_module.sample_l0 = eager_sampler
     # Active rays and samples per active ray, on one batch per variant (outside the timing).
     from neus_l0.data.rays import random_rays
     from neus_l0.rendering import render_rays

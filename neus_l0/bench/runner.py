@@ -29,6 +29,7 @@ whose process dies without a status.json as failed, with its exit code and the l
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -124,7 +125,9 @@ class RunSpec:
         if self.config is None:
             return load_config(self.conf, self.run_overrides())
         data = copy.deepcopy(self.config)
-        data["sampler"] = self.sampler
+        block = data.get("sampler")
+        data["sampler"] = ({**block, "name": self.sampler} if isinstance(block, dict)
+                           else self.sampler)
         data.setdefault("train", {}).update(seed=self.seed, max_seconds=self.budget_s)
         return config_from_dict(data)
 
@@ -304,6 +307,37 @@ def _snapshot_elapsed(run_dir: Path) -> dict[int, float]:
     return out
 
 
+def _score(spec: RunSpec, path: Path) -> dict | None:
+    """The Chamfer report of the mesh at `path` against the scene (None: no ground truth)."""
+    if not (Path(spec.scene_dir) / "gt_points.ply").is_file():
+        return None
+    from neus_l0.evaluation.score import ScoreSpec, score_mesh
+
+    return score_mesh(path, ScoreSpec(scene=spec.scene_dir, density=spec.eval_density),
+                      log=lambda msg: print(msg, file=sys.stderr, flush=True))
+
+
+def _eval_record(spec: RunSpec, row: dict, result, score, psnrs, views: tuple,
+                 measures: dict) -> dict:
+    """What ``eval.json`` holds besides the row (see the module docstring)."""
+    import torch
+
+    train_views, test_views, psnr_stride_ = views
+    return {
+        "row": row, "chamfer": score, "psnr_views": dict(zip(test_views, psnrs)),
+        "train_views": train_views, "heldout_views": test_views,
+        "stopped_early": result.stopped_early, "final_metrics": result.metrics,
+        "peak_rss_mb_train": measures["peak_rss"], "peak_rss_mb_total": _peak_rss_mb(),
+        "peak_gpu_mb_train": measures["peak_gpu"], "sample_dist_rays": spec.sample_rays,
+        "sample_dist_surface": measures["surface"], "psnr_stride": psnr_stride_,
+        "timings": measures["timings"], "torch_threads": torch.get_num_threads(),
+        "curve": measures["curve"], "snapshots": [
+            {"mark": m, "iteration": it, "checkpoint": str(Path(p).relative_to(spec.run_dir))}
+            for m, it, p in result.snapshots],
+        "label": spec.label, "spec": dataclasses.asdict(spec),
+    }
+
+
 def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     """Run `spec` in this process and return its done row (raises on failure).
 
@@ -368,14 +402,7 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     mesh_path = export_mesh(mesh, run_dir / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0
 
-    def score_fn(path: Path) -> dict | None:
-        if not (Path(spec.scene_dir) / "gt_points.ply").is_file():
-            return None
-        from neus_l0.evaluation.score import score_mesh
-
-        return score_mesh(path, scene=spec.scene_dir, density=spec.eval_density,
-                          log=lambda msg: print(msg, file=sys.stderr, flush=True))
-
+    score_fn = functools.partial(_score, spec)
     t0 = time.monotonic()
     report("score: Chamfer")
     score = score_fn(mesh_path)
@@ -402,21 +429,11 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
         psnr_heldout=float(np.mean(psnrs)) if psnrs else None, peak_mem_mb=peak_mb,
         sample_dist_final=sample_dist, mesh=f"runs/{spec.name}/mesh.ply",
         mesh_seconds=timings["extract_s"])
-    atomic_write_json(run_dir / "eval.json", {
-        "row": row, "chamfer": score, "psnr_views": dict(zip(test_views, psnrs)),
-        "train_views": train_views, "heldout_views": test_views,
-        "stopped_early": result.stopped_early, "final_metrics": result.metrics,
-        "peak_rss_mb_train": peak_rss, "peak_rss_mb_total": _peak_rss_mb(),
-        "peak_gpu_mb_train": peak_gpu, "sample_dist_rays": spec.sample_rays,
-        "sample_dist_surface": surface.kind if surface is not None else None,
-        "psnr_stride": psnr_stride(full.height, full.width, cfg.train.val_downscale,
-                                   spec.psnr_pixels),
-        "timings": timings, "torch_threads": torch.get_num_threads(),
-        "curve": curve, "snapshots": [
-            {"mark": m, "iteration": it, "checkpoint": str(Path(p).relative_to(run_dir))}
-            for m, it, p in result.snapshots],
-        "label": spec.label, "spec": dataclasses.asdict(spec),
-    })
+    stride = psnr_stride(full.height, full.width, cfg.train.val_downscale, spec.psnr_pixels)
+    atomic_write_json(run_dir / "eval.json", _eval_record(
+        spec, row, result, score, psnrs, (train_views, test_views, stride),
+        {"peak_rss": peak_rss, "peak_gpu": peak_gpu, "timings": timings, "curve": curve,
+         "surface": surface.kind if surface is not None else None}))
     return row
 
 

@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
         "train_final": result.metrics,
         "mesh": {"path": str(mesh_path), "vertices": len(mesh.vertices),
                  "faces": len(mesh.faces), "resolution": args.resolution},
-        "sampler": cfg.sampler,
+        "sampler": str(cfg.sampler),
         "conf": str(args.conf),
         "device": device,
         "threads": threads,

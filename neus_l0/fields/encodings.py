@@ -142,7 +142,8 @@ class HashGridEncoding(Encoding):
     with ordinary tensor ops, so autograd differentiates them to any order (the SDF's
     gradient is piecewise polynomial in x, and the Eikonal loss backpropagates through it).
 
-    Progressive levels (instant-nsr-pl's ProgressiveBandHashGrid): with `start_level` < L,
+    Progressive levels (instant-nsr-pl's ProgressiveBandHashGrid; `progressive` =
+    ``(start_level, update_steps)``): with `start_level` < L,
     only the first ``start_level + steps // update_steps`` levels are active (the others
     output 0), where ``steps`` is a persistent counter of forward passes made in training
     mode with gradients enabled (one per training iteration in `neus_l0.rendering`; the
@@ -159,8 +160,9 @@ class HashGridEncoding(Encoding):
                  log2_hashmap_size: int = 19, base_resolution: int = 16,
                  per_level_scale: float = 1.3819, bound: float = 1.0, n_freqs: int = 0,
                  include_input: bool = True, init_scale: float = 1e-4, lr_scale: float = 1.0,
-                 start_level: int | None = None, update_steps: int = 1000) -> None:
+                 progressive: tuple[int | None, int] = (None, 1000)) -> None:
         super().__init__()
+        start_level, update_steps = progressive
         if in_dim != 3:
             raise ValueError("the hash grid encodes 3-D points")
         self.in_dim = in_dim
@@ -393,7 +395,7 @@ def build_encoding(cfg: EncodingConfig, in_dim: int) -> Encoding:
             log2_hashmap_size=cfg.log2_hashmap_size, base_resolution=cfg.base_resolution,
             per_level_scale=hashgrid_per_level_scale(cfg), bound=cfg.bound,
             n_freqs=cfg.n_freqs, include_input=cfg.include_input, init_scale=cfg.init_scale,
-            lr_scale=cfg.lr_scale, start_level=cfg.start_level, update_steps=cfg.update_steps)
+            lr_scale=cfg.lr_scale, progressive=(cfg.start_level, cfg.update_steps))
     raise ValueError(f"unknown encoding kind {cfg.kind!r}")
 
 

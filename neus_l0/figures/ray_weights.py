@@ -173,17 +173,11 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         sampler: the sampler the run trained with (its all-round fine samples are drawn).
     """
     from neus_l0.data.cameras import to_normalised, world_scale
-    from neus_l0.rendering import (
-        coarse_z_vals,
-        draw_fine_samples,
-        near_far_from_sphere,
-        render_rays,
-        section_to_point_weights,
-        upsample_section_weights,
-    )
+    from neus_l0.rendering import coarse_z_vals, near_far_from_sphere, render_rays
+    from neus_l0.samplers import build_sampler, upsample_section_weights
     from neus_l0.sampling import maxblur
 
-    r = cfg.render
+    r, sc = cfg.render, cfg.sampler
     s = world_scale(scale_mat)  # world units per normalised unit along the ray
     o = torch.as_tensor(to_normalised(origin, scale_mat), dtype=torch.float32)[None]  # (1, 3)
     d = torch.as_tensor(direction, dtype=torch.float32)[None]  # (1, 3): same in both frames
@@ -192,13 +186,14 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         t = coarse_z_vals(near, far, r.n_samples, perturb=False)  # (1, N)
         pts = o[:, None] + d[:, None] * t[..., None]  # (1, N, 3)
         sdf = model.sdf.sdf(pts.reshape(-1, 3)).reshape(1, -1)
-        w = upsample_section_weights(t, sdf, pts.norm(dim=-1), 64.0)  # (1, N-1)
+        sections = upsample_section_weights(t, sdf, pts.norm(dim=-1), sc.base_inv_s)
+        w = sections.weights  # (1, N-1)
         per_round = max(1, r.n_importance // max(1, r.up_sample_steps))
-        fine = {name: draw_fine_samples(t, w, per_round, name, r.point_weights,
-                                        r.weights_as_density, r.l0_pad)[0] * s
-                for name in ("hvs", "l0")}
-        nodes, pw = section_to_point_weights(t, w, r.point_weights, r.weights_as_density)
-        wb = maxblur(pw, pad=r.l0_pad)[0].double()  # (M,)
+        l0 = build_sampler(dataclasses.replace(sc, name="l0", kind="", compile=False))
+        fine = {"hvs": build_sampler("hvs").draw(sections, per_round)[0] * s,
+                "l0": l0.draw(sections, per_round)[0] * s}
+        nodes, pw = l0.point_weights(sections)
+        wb = maxblur(pw, pad=l0.pad)[0].double() if l0.blur else pw[0].double()  # (M,)
         x, pdf = exp_interpolation(nodes[0].double(), wb)
         D = (t[0, 1:] - t[0, :-1]).double()
         hvs = w[0].double() / (w[0].double().sum() * D)

@@ -1,0 +1,342 @@
+"""NeuS's up-sampling with the fine-sample draw as an object: the samplers and their registry.
+
+NeuS refines the coarse samples of a ray in rounds: at a fixed sharpness ``inv_s = base *
+2^round`` it turns the SDF at the current samples into weights of the sections
+``[z_j, z_{j+1}]`` (`upsample_section_weights`, a `Sections`), draws new samples from them,
+and merges. The draw is a `Sampler`, chosen by name from one registry (`SAMPLERS`) and built
+once from a `neus_l0.config.SamplerConfig` (`build_sampler`):
+
+* ``hvs``: NeuS's own piecewise-constant inverse CDF of the section weights (`sample_pdf`);
+* ``l0``, ``l0-inverse``, ``l0-linear``: the L0-Sampler (`sample_l0`) with exponential /
+  inverse / linear interpolation of point weights made from the section weights
+  (`section_to_point_weights`), after maxblur with a pad (absolute, relative or none);
+* ``neus-exact``: the section weights as masses, and inside each section the exact CDF of
+  NeuS's opacity with its linear SDF estimate (`sample_neus_sections`).
+
+`up_sample` runs the rounds with any SDF function, so the same code serves training (the SDF
+network) and the oracle study (analytic SDFs, `neus_l0.study.sampling`). The module is a leaf
+above `sampling.py`: it knows no networks and no configs beyond `SamplerConfig`'s fields.
+
+Shapes: B rays, N samples per ray (sorted), n samples drawn per round.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Protocol
+
+import torch
+from torch import Tensor
+
+from neus_l0.sampling import sample_l0, sample_neus_sections, sample_pdf, sanitize_weights
+
+if TYPE_CHECKING:  # config imports this module's registry; no cycle at run time
+    from neus_l0.config import SamplerConfig
+
+__all__ = [
+    "HVSSampler", "L0Sampler", "L0_KINDS", "NeuSExactSampler", "PAD_MODES", "PLACEMENTS",
+    "SAMPLERS", "Sampler", "Sections", "build_sampler", "merge_sorted",
+    "section_to_point_weights", "transmittance", "up_sample", "upsample_section_weights",
+]
+
+#: The L0 sampler names and the interpolation kind each uses by default.
+L0_KINDS: dict[str, str] = {"l0": "exp", "l0-inverse": "inverse", "l0-linear": "linear"}
+#: How the maxblur pad of the L0 samplers is scaled (see `L0Sampler`).
+PAD_MODES = ("absolute", "relative", "none")
+#: Where section weights are placed as point weights (see `section_to_point_weights`).
+PLACEMENTS = ("midpoint", "endpoint")
+
+
+# ------------------------------------------------------------------------------------------
+# NeuS's up-sampling pieces (pure functions).
+
+
+@dataclasses.dataclass
+class Sections:
+    """NeuS's sections of a ray at one up-sampling round.
+
+    Attributes:
+        z: (B, N) sorted section ends.
+        weights: (B, N-1) section weights (alpha times transmittance).
+        prev_sdf: (B, N-1) NeuS's linear SDF estimate at the start of each section
+            (its ``prev_esti``).
+        next_sdf: (B, N-1) the estimate at the end (``next_esti``); <= prev_sdf.
+        inv_s: the fixed logistic sharpness of the round.
+    """
+
+    z: Tensor
+    weights: Tensor
+    prev_sdf: Tensor
+    next_sdf: Tensor
+    inv_s: float
+
+
+def transmittance(alpha: Tensor) -> Tensor:
+    """Exclusive cumulative product of (1 - alpha + 1e-7) along the last axis (NeuS's).
+
+    Args:
+        alpha: (B, N).
+
+    Returns:
+        (B, N) transmittance before each sample.
+    """
+    ones = torch.ones_like(alpha[:, :1])
+    return torch.cumprod(torch.cat([ones, 1.0 - alpha + 1e-7], dim=-1), dim=-1)[:, :-1]
+
+
+def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor, inv_s: float) -> Sections:
+    """NeuS's up-sampling weights of the sections [z_j, z_{j+1}] at a fixed sharpness.
+
+    The slope of each section is the smaller (steeper descent) of its own and the previous
+    section's, clipped to [-1e3, 0], and zero for sections entirely outside the unit sphere.
+
+    Args:
+        z: (B, N) sorted positions; sdf: (B, N) SDF there; radius: (B, N) distance to the
+            origin there.
+        inv_s: the fixed logistic sharpness (NeuS: 64 * 2^round).
+
+    Returns:
+        The `Sections`: weights (alpha times transmittance) and the SDF estimates, (B, N-1).
+    """
+    inside = (radius[:, :-1] < 1.0) | (radius[:, 1:] < 1.0)  # (B, N-1)
+    prev_sdf, next_sdf = sdf[:, :-1], sdf[:, 1:]
+    dist = z[:, 1:] - z[:, :-1]
+    mid_sdf = 0.5 * (prev_sdf + next_sdf)
+    cos_val = (next_sdf - prev_sdf) / (dist + 1e-5)
+    prev_cos = torch.cat([torch.zeros_like(cos_val[:, :1]), cos_val[:, :-1]], dim=-1)
+    cos_val = torch.minimum(prev_cos, cos_val).clip(-1e3, 0.0) * inside
+    prev_esti = mid_sdf - cos_val * dist * 0.5
+    next_esti = mid_sdf + cos_val * dist * 0.5
+    prev_cdf = torch.sigmoid(prev_esti * inv_s)
+    next_cdf = torch.sigmoid(next_esti * inv_s)
+    alpha = (prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)
+    return Sections(z, alpha * transmittance(alpha), prev_esti, next_esti, float(inv_s))
+
+
+def section_to_point_weights(z: Tensor, section_weights: Tensor, placement: str = "midpoint",
+                             as_density: bool = True) -> tuple[Tensor, Tensor]:
+    """Turn weights of sections [z_j, z_{j+1}] into weights at points for the L0-Sampler.
+
+    Args:
+        z: (B, N) sorted section ends.
+        section_weights: (B, N-1).
+        placement: ``midpoint`` (t = section midpoints, N-1 points) or ``endpoint``
+            (t = z, each point the mean of its adjacent sections, edges replicated).
+        as_density: divide by the section length (times the mean length, so uniform
+            sections are unchanged); lengths below 1e-3 of the mean count as 1e-3 of it.
+
+    Returns:
+        t (B, M) sorted positions and weights (B, M), M = N-1 or N.
+    """
+    w = section_weights
+    if as_density:
+        length = z[:, 1:] - z[:, :-1]  # (B, N-1)
+        mean = length.mean(dim=-1, keepdim=True)
+        w = w * mean / torch.maximum(length, 1e-3 * mean)
+    if placement == "midpoint":
+        return 0.5 * (z[:, 1:] + z[:, :-1]), w
+    if placement == "endpoint":
+        padded = torch.cat([w[:, :1], w, w[:, -1:]], dim=-1)  # (B, N+1)
+        return z, 0.5 * (padded[:, 1:] + padded[:, :-1])
+    raise ValueError(f"unknown point-weight placement {placement!r}")
+
+
+def merge_sorted(z: Tensor, new_z: Tensor, values: Tensor | None = None,
+                 new_values: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+    """Concatenate and sort positions, carrying per-sample values along.
+
+    Args:
+        z: (B, N); new_z: (B, M); values: (B, N) or None; new_values: (B, M) or None.
+
+    Returns:
+        (B, N+M) sorted positions and the values in the same order (or None).
+    """
+    z_all, order = torch.sort(torch.cat([z, new_z], dim=-1), dim=-1)
+    if values is None or new_values is None:
+        return z_all, None
+    return z_all, torch.gather(torch.cat([values, new_values], dim=-1), -1, order)
+
+
+# ------------------------------------------------------------------------------------------
+# The samplers.
+
+
+class Sampler(Protocol):
+    """The fine-sample draw of one up-sampling round.
+
+    Attributes:
+        name: the registry name it was built from.
+        base_inv_s: NeuS's sharpness of the first round (round i uses base * 2^i).
+    """
+
+    name: str
+    base_inv_s: float
+
+    def draw(self, sections: Sections, n_samples: int) -> Tensor:
+        """(B, n_samples) new positions, sorted, detached, inside [z_0, z_{N-1}]."""
+
+
+@dataclasses.dataclass(frozen=True)
+class HVSSampler:
+    """NeuS's draw: the piecewise-constant inverse CDF of the section weights."""
+
+    name: str = "hvs"
+    base_inv_s: float = 64.0
+
+    def draw(self, sections: Sections, n_samples: int) -> Tensor:
+        """Deterministic `sample_pdf` on the sections; (B, n_samples)."""
+        return sample_pdf(sections.z, sections.weights, n_samples, det=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class NeuSExactSampler:
+    """Section masses, then the exact CDF of NeuS's opacity inside each section."""
+
+    name: str = "neus-exact"
+    base_inv_s: float = 64.0
+
+    def draw(self, sections: Sections, n_samples: int) -> Tensor:
+        """Deterministic `sample_neus_sections` at the round's sharpness; (B, n_samples)."""
+        return sample_neus_sections(sections.z, sections.weights, sections.prev_sdf,
+                                    sections.next_sdf, sections.inv_s, n_samples, det=True)
+
+
+class L0Sampler:
+    """The L0-Sampler on point weights made from NeuS's section weights.
+
+    The pad of maxblur is scaled by ``pad_mode``: ``absolute`` adds ``pad`` to the point
+    weights as they are (NeuS's section weights sum to at most 1, so the pad's share of the
+    samples grows as the ray's weight shrinks); ``relative`` adds ``pad`` times the ray's
+    mean point weight (implemented by dividing each ray's weights by their mean first, which
+    changes nothing else, since the draw does not depend on the weights' scale), so the pad
+    holds at most a fraction ``pad / (1 + pad)`` of the draw whatever the weights; ``none``
+    adds nothing. Without blur the pad is added to the point weights directly.
+
+    Args:
+        name: the registry name. kind: ``exp``, ``inverse`` or ``linear``.
+        pad, pad_mode, blur: maxblur's pad, how it scales, and whether to blur at all.
+        placement, as_density: see `section_to_point_weights`.
+        base_inv_s: NeuS's first-round sharpness.
+        compile: draw through `torch.compile` (``exp`` and ``linear`` only; compiled, the
+            ``inverse`` kind's all-zero rays came out non-finite, so it stays eager).
+    """
+
+    def __init__(self, name: str = "l0", kind: str = "exp", pad: float = 0.0,
+                 pad_mode: str = "relative", blur: bool = False, placement: str = "midpoint",
+                 as_density: bool = True, base_inv_s: float = 64.0, compile: bool = False):
+        if pad_mode not in PAD_MODES:
+            raise ValueError(f"unknown pad mode {pad_mode!r} (choose from {PAD_MODES})")
+        if placement not in PLACEMENTS:
+            raise ValueError(f"unknown placement {placement!r} (choose from {PLACEMENTS})")
+        self.name, self.kind, self.base_inv_s = name, kind, float(base_inv_s)
+        self.pad = 0.0 if pad_mode == "none" else float(pad)
+        self.pad_mode, self.blur = pad_mode, blur
+        self.placement, self.as_density = placement, as_density
+        self._draw = sample_l0
+        if compile and kind in ("exp", "linear"):
+            self._draw = torch.compile(sample_l0, dynamic=True)
+
+    def __repr__(self) -> str:
+        return (f"L0Sampler(name={self.name!r}, kind={self.kind!r}, pad={self.pad}, "
+                f"pad_mode={self.pad_mode!r}, blur={self.blur}, placement={self.placement!r}, "
+                f"as_density={self.as_density}, base_inv_s={self.base_inv_s})")
+
+    def point_weights(self, sections: Sections) -> tuple[Tensor, Tensor]:
+        """The nodes and weights the L0 interpolation runs on, before maxblur; (B, M) each."""
+        t, w = section_to_point_weights(sections.z, sections.weights, self.placement,
+                                        self.as_density)
+        if self.pad_mode == "relative":
+            mean = w.mean(dim=-1, keepdim=True)  # (B, 1)
+            w = w / torch.where(mean > 0, mean, 1.0)
+        if not self.blur and self.pad > 0:  # no maxblur to add the pad: add it here
+            w = sanitize_weights(w) + self.pad
+        return t, w
+
+    def draw(self, sections: Sections, n_samples: int) -> Tensor:
+        """Deterministic `sample_l0` on the point weights; (B, n_samples)."""
+        t, w = self.point_weights(sections)
+        return self._draw(t, w, n_samples, kind=self.kind, det=True, blur=self.blur,
+                          pad=self.pad)
+
+
+def _l0(cfg: SamplerConfig) -> L0Sampler:
+    return L0Sampler(cfg.name, cfg.l0_kind(), cfg.pad, cfg.pad_mode, cfg.blur, cfg.placement,
+                     cfg.as_density, cfg.base_inv_s, cfg.compile)
+
+
+#: The one registry of sampler names: name -> builder from a `SamplerConfig`.
+REGISTRY: dict[str, Callable[[SamplerConfig], Sampler]] = {
+    "hvs": lambda cfg: HVSSampler(base_inv_s=cfg.base_inv_s),
+    "l0": _l0,
+    "l0-inverse": _l0,
+    "l0-linear": _l0,
+    "neus-exact": lambda cfg: NeuSExactSampler(base_inv_s=cfg.base_inv_s),
+}
+#: Sampler names, in the order `--help` and errors list them.
+SAMPLERS = tuple(REGISTRY)
+
+
+def build_sampler(cfg: SamplerConfig | str) -> Sampler:
+    """Build the sampler a `SamplerConfig` (or a bare name, with defaults) describes.
+
+    Build it once (per run, or per process): ``compile=True`` compiles at the first draw.
+    """
+    if isinstance(cfg, str):
+        from neus_l0.config import SamplerConfig
+
+        cfg = SamplerConfig(name=cfg)
+    if cfg.name not in REGISTRY:
+        raise ValueError(f"unknown sampler {cfg.name!r} (choose from {', '.join(SAMPLERS)})")
+    return REGISTRY[cfg.name](cfg)
+
+
+# ------------------------------------------------------------------------------------------
+# The rounds.
+
+
+def up_sample(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor, z: Tensor,
+              sampler: Sampler, n_importance: int, steps: int) -> tuple[Tensor, Tensor]:
+    """NeuS's coarse-to-fine rounds (no gradient), drawing with `sampler`.
+
+    Round i computes the `Sections` at ``inv_s = sampler.base_inv_s * 2^i`` and draws
+    ``n_importance / steps`` new samples; the SDF is evaluated at the new samples of every
+    round but the last.
+
+    Args:
+        sdf_fn: maps (P, 3) points to (P,) SDF values (cast to z's dtype).
+        origins, dirs: (B, 3).
+        z: (B, n_samples) sorted coarse positions.
+        sampler: the draw (see `build_sampler`).
+        n_importance: fine samples in total (a multiple of `steps`).
+        steps: rounds.
+
+    Returns:
+        z_all: (B, n_samples + n_importance) sorted positions; z_new: (B, n_importance) the
+        up-sampled positions alone, in the order drawn (sorted within each round).
+    """
+    if n_importance == 0 or steps == 0:
+        return z, z[:, :0]
+    per_round = n_importance // steps
+    B = z.shape[0]
+
+    def sdf_at(t: Tensor) -> tuple[Tensor, Tensor]:
+        pts = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (B, n, 3)
+        sdf = sdf_fn(pts.reshape(-1, 3)).to(t.dtype).reshape(B, t.shape[1])
+        return sdf, pts.norm(dim=-1)
+
+    new_all = []
+    with torch.no_grad():
+        sdf, radius = sdf_at(z)
+        for i in range(steps):
+            sections = upsample_section_weights(z, sdf, radius, sampler.base_inv_s * 2**i)
+            new_z = sampler.draw(sections, per_round)  # (B, per_round)
+            new_all.append(new_z)
+            if i + 1 == steps:
+                z, _ = merge_sorted(z, new_z)
+            else:
+                new_sdf, new_radius = sdf_at(new_z)
+                z_all, sdf = merge_sorted(z, new_z, sdf, new_sdf)
+                _, radius = merge_sorted(z, new_z, radius, new_radius)
+                z = z_all
+    return z, torch.cat(new_all, dim=-1)

@@ -1,0 +1,164 @@
+"""`neus_l0.samplers`: the registry, the sampler objects, and NeuS's up-sampling rounds."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from neus_l0 import rendering
+from neus_l0.config import RenderConfig, SamplerConfig
+from neus_l0.data.shapes import Sphere
+from neus_l0.samplers import (
+    SAMPLERS,
+    HVSSampler,
+    L0Sampler,
+    NeuSExactSampler,
+    Sections,
+    build_sampler,
+    section_to_point_weights,
+    up_sample,
+    upsample_section_weights,
+)
+from neus_l0.sampling import sample_l0
+
+
+def _sections(B: int = 6, N: int = 17, seed: int = 0) -> Sections:
+    """NeuS sections of rays through a plane at depth 1.3 (uneven coarse positions)."""
+    g = torch.Generator().manual_seed(seed)
+    z = torch.sort(torch.rand(B, N, generator=g) * 2.0 + 0.3, dim=-1).values
+    cos = 0.3 + 0.7 * torch.rand(B, 1, generator=g)
+    sdf = (1.3 - z) * cos
+    return upsample_section_weights(z, sdf, torch.full_like(z, 0.5), 64.0)
+
+
+def test_registry_builds_every_name():
+    for name in SAMPLERS:
+        s = build_sampler(name)
+        assert s.name == name and s.base_inv_s == 64.0
+        out = s.draw(_sections(), 8)
+        assert out.shape == (6, 8) and (out[:, 1:] >= out[:, :-1]).all()
+    assert isinstance(build_sampler("hvs"), HVSSampler)
+    assert isinstance(build_sampler("neus-exact"), NeuSExactSampler)
+    assert build_sampler("l0-inverse").kind == "inverse"
+    assert build_sampler(SamplerConfig(name="l0", kind="linear")).kind == "linear"
+    assert build_sampler(SamplerConfig(name="hvs", base_inv_s=32.0)).base_inv_s == 32.0
+    with pytest.raises(ValueError, match="neus-exact"):
+        build_sampler("nope")
+
+
+def test_sections_of_a_plane_are_its_linear_sdf():
+    sec = _sections()
+    assert sec.weights.shape == sec.prev_sdf.shape == (6, 16) and sec.inv_s == 64.0
+    assert (sec.prev_sdf >= sec.next_sdf).all()
+    # a linear SDF: NeuS's estimates are the SDF at the section ends (up to its 1e-5 guard)
+    z = sec.z
+    sdf = 0.5 * (sec.prev_sdf + sec.next_sdf)  # the midpoint value is exact
+    slope = (sec.prev_sdf - sec.next_sdf)[:, 1:] / (z[:, 2:] - z[:, 1:-1])
+    torch.testing.assert_close(slope, slope[:, :1].expand_as(slope), rtol=1e-3, atol=1e-3)
+    assert torch.isfinite(sdf).all()
+    assert (sec.weights >= 0).all() and sec.weights.sum(-1).max() <= 1.0 + 1e-4
+
+
+def test_relative_pad_does_not_depend_on_the_weights_scale():
+    sec = _sections()
+    small = Sections(sec.z, sec.weights * 1e-3, sec.prev_sdf, sec.next_sdf, sec.inv_s)
+    rel = L0Sampler(pad=0.01, pad_mode="relative")
+    torch.testing.assert_close(rel.draw(small, 16), rel.draw(sec, 16))
+    ab = L0Sampler(pad=0.01, pad_mode="absolute")
+    assert not torch.allclose(ab.draw(small, 16), ab.draw(sec, 16))
+
+
+def test_relative_pad_holds_a_bounded_share():
+    """One sharp section: the samples outside it are the pad's, at most pad / (1 + pad)."""
+    z = torch.linspace(0.0, 2.0, 65)[None]
+    w = torch.zeros(1, 64)
+    w[0, 30] = 0.9
+    sec = Sections(z, w, torch.zeros_like(w), torch.zeros_like(w), 64.0)
+    for pad in (0.01, 0.1):
+        s = L0Sampler(pad=pad, pad_mode="relative", blur=True).draw(sec, 2000)
+        away = ((s < z[0, 28]) | (s > z[0, 33])).float().mean().item()
+        assert 0.0 < away <= pad / (1 + pad)
+    none = L0Sampler(pad=0.5, pad_mode="none").draw(sec, 64)
+    torch.testing.assert_close(none, L0Sampler(pad=0.0).draw(sec, 64))
+
+
+def test_l0_sampler_is_sample_l0_on_point_weights():
+    sec = _sections()
+    s = L0Sampler(kind="inverse", pad=0.002, pad_mode="absolute", blur=True,
+                  placement="endpoint", as_density=False)
+    t, w = s.point_weights(sec)
+    assert t.shape == sec.z.shape
+    torch.testing.assert_close(s.draw(sec, 12), sample_l0(t, w, 12, kind="inverse", pad=0.002))
+    plain = L0Sampler()  # the default: no maxblur, no pad
+    t, w = plain.point_weights(sec)
+    torch.testing.assert_close(plain.draw(sec, 12), sample_l0(t, w, 12, blur=False))
+    padded = L0Sampler(pad=0.05, pad_mode="absolute")  # without blur the pad is added
+    t, w = padded.point_weights(sec)
+    torch.testing.assert_close(w, section_to_point_weights(sec.z, sec.weights)[1] + 0.05)
+
+
+def test_compile_is_state_on_the_object():
+    assert L0Sampler(compile=False)._draw is sample_l0
+    assert L0Sampler(kind="inverse", compile=True)._draw is sample_l0  # stays eager
+    assert L0Sampler(kind="exp", compile=True)._draw is not sample_l0
+
+
+def _sphere_rays(B: int = 32):
+    g = torch.Generator().manual_seed(2)
+    v = torch.nn.functional.normalize(torch.randn(B, 3, generator=g), dim=-1)
+    target = 0.3 * torch.nn.functional.normalize(torch.randn(B, 3, generator=g), dim=-1)
+    d = torch.nn.functional.normalize(target - 2.5 * v, dim=-1)
+    return 2.5 * v, d
+
+
+@pytest.mark.parametrize("name", SAMPLERS)
+def test_up_sample_rounds(name):
+    o, d = _sphere_rays()
+    near, far = rendering.near_far_from_sphere(o, d)
+    z = rendering.coarse_z_vals(near, far, 16, perturb=False)
+    z_all, z_new = up_sample(Sphere((0.0, 0.0, 0.0), 0.5), o, d, z, build_sampler(name), 16, 2)
+    assert z_all.shape == (32, 32) and z_new.shape == (32, 16)
+    assert (z_all[:, 1:] >= z_all[:, :-1]).all()
+    assert (z_new >= near).all() and (z_new <= far).all()
+    for half in (z_new[:, :8], z_new[:, 8:]):  # sorted within each round
+        assert (half[:, 1:] >= half[:, :-1]).all()
+    same, none = up_sample(lambda p: p[:, 0], o, d, z, build_sampler(name), 0, 2)
+    assert same is z and none.shape == (32, 0)
+
+
+def test_neus_exact_lands_closer_to_a_sphere_than_hvs():
+    """The exact CDF puts the fine samples nearer the first hit than NeuS's own draw."""
+    o, d = _sphere_rays(64)
+    b = (o * d).sum(-1)
+    hit = -b - (b * b - ((o * o).sum(-1) - 0.25)).sqrt()  # (B,) ray-sphere intersection
+    near, far = rendering.near_far_from_sphere(o, d)
+    z = rendering.coarse_z_vals(near, far, 16, perturb=False)
+    med = {}
+    for name in ("hvs", "neus-exact"):
+        _, z_new = up_sample(Sphere((0.0, 0.0, 0.0), 0.5), o, d, z, build_sampler(name), 16, 2)
+        med[name] = (z_new - hit[:, None]).abs().median().item()
+    assert med["neus-exact"] < 0.8 * med["hvs"]
+
+
+def test_up_sample_equals_the_old_rendering_rounds():
+    """While rendering.py still has its own rounds: the moved copy draws the same samples."""
+    if not hasattr(rendering, "draw_fine_samples"):
+        pytest.skip("rendering.py no longer has its own up-sampling")
+    sphere = Sphere((0.0, 0.0, 0.0), 0.5)
+
+    class _Model:  # the old up_sample reads model.sdf.sdf
+        class sdf:  # noqa: N801
+            @staticmethod
+            def sdf(p):
+                return sphere(p)
+
+    o, d = _sphere_rays()
+    near, far = rendering.near_far_from_sphere(o, d)
+    z = rendering.coarse_z_vals(near, far, 16, perturb=False)
+    cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2)
+    for name in ("hvs", "l0", "l0-linear"):
+        old = rendering.up_sample(_Model, o, d, z, cfg, name)
+        old_l0 = SamplerConfig(name=name, blur=True, pad=cfg.l0_pad, pad_mode="absolute")
+        new = up_sample(sphere, o, d, z, build_sampler(old_l0), 16, 2)
+        torch.testing.assert_close(new[0], old[0])
+        torch.testing.assert_close(new[1], old[1])
