@@ -36,13 +36,17 @@ Suspicious views (`check_hull`, and the exclusion in `carve_hull`):
   empty mask would remove everything the view sees, so it is never trusted.
 - *all foreground* (>= `FULL_MASK` of the pixels): warning only; such a mask carves
   nothing inside its image, so it cannot cut the object.
-- *carves alone*: the fraction of the hull of all other views that this view's mask removes
-  by itself (``alone``). A correct view removes little that every other view keeps; a
-  mask of the wrong view (swapped masks) removes a large part of the object. A view above
-  `SUSPICIOUS_ALONE` is excluded from the carving (the hull only grows), one at a time,
-  worst first, and named in a warning.
-- *explained*: the fraction of a view's foreground pixels whose rays meet the final hull. It
-  is 1 for a hull that contains the object; a view below `EXPLAINED_MIN` gets a warning.
+- *cuts*: the fraction of the other views' foreground rays (pixels with mask > 0.5) that
+  miss the hull but cross a cell that this view alone carved, i.e. that would meet the hull
+  without this view. It is 0 for correct masks (the object is inside every view's cone, so
+  every foreground ray meets the hull); a mask of the wrong view (swapped masks) cuts away
+  object that the others see. Views above `SUSPICIOUS_CUTS` are excluded from the carving
+  (the hull only grows), one at a time, worst first, re-carving each time, and named.
+- *explained*: the fraction of a view's foreground rays that meet the final hull: 1 for a
+  hull that contains the object; a view below `EXPLAINED_MIN` gets a warning.
+
+Cost: coarse to fine (cells of the R/4 grid first; see `_carve`), one Euclidean distance
+transform per mask (OpenCV), and cells carved by two views are dropped from further tests.
 """
 
 from __future__ import annotations
@@ -367,7 +371,8 @@ def _background_distance(mask: Tensor) -> Tensor:
     if bg.all():
         return torch.full(bg.shape, 32767, dtype=torch.int16)
     d = cv2.distanceTransform(bg, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return torch.from_numpy(np.minimum(np.floor(d), 32767).astype(np.int16))
+    np.minimum(d, 32767.0, out=d)
+    return torch.from_numpy(d.astype(np.int16))  # truncation: floor of a distance >= 0
 
 
 def _camera_terms(intrinsics: Tensor, c2w: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -679,6 +684,27 @@ def hull_from_scene(scene, resolution: int = DEFAULT_RESOLUTION,
     """`carve_hull` on a `neus_l0.data.scene.Scene` (on the scene's device)."""
     return carve_hull(scene.masks, scene.intrinsics, scene.c2w, resolution, margin_px,
                       has_masks=scene.has_masks, names=list(scene.image_names))
+
+
+def hull_for_run(scene, path: str | Path, resolution: int = DEFAULT_RESOLUTION,
+                 margin_px: float = DEFAULT_MARGIN_PX) -> VisualHull:
+    """The run's hull: loaded from `path` when it exists (resume and `mesh` then use the
+    hull the run started with), else carved from `scene` and saved there atomically.
+
+    Args:
+        scene: the `Scene` (the hull goes to its device).
+        path: the run's hull file (e.g. ``RUN/hull.pt``).
+        resolution, margin_px: used only when carving.
+
+    Returns:
+        The `VisualHull`; its ``report.warnings`` are the lines to show the user.
+    """
+    path = Path(path)
+    if path.is_file():
+        return VisualHull.load(path, scene.device)
+    hull = hull_from_scene(scene, resolution, margin_px)
+    hull.save(path)
+    return hull
 
 
 def format_report(report: HullReport) -> str:
