@@ -202,10 +202,15 @@ class VisualHull:
     def _flat_index(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """Flat cell index (clamped) and whether the point is inside the cube."""
         R = self.resolution
-        ijk = torch.floor((points + 1.0) / self.cell).long()  # (..., 3)
-        inside = ((ijk >= 0) & (ijk < R)).all(dim=-1)
-        ijk = ijk.clamp(0, R - 1)
-        return (ijk[..., 0] * R + ijk[..., 1]) * R + ijk[..., 2], inside
+        q = torch.floor((points.float() + 1.0) * (R / 2.0))  # (..., 3) cell coordinates
+        inside = (q.amin(dim=-1) >= 0) & (q.amax(dim=-1) < R)
+        q = q.clamp(0, R - 1)
+        if R ** 3 <= 2 ** 24:  # exact in float32
+            flat = ((q[..., 0] * R + q[..., 1]) * R + q[..., 2]).long()
+        else:
+            q = q.long()
+            flat = (q[..., 0] * R + q[..., 1]) * R + q[..., 2]
+        return flat, inside
 
     def contains(self, points: Tensor) -> Tensor:
         """Whether points (..., 3) in the normalised frame lie in the hull: (...,) bool."""
@@ -227,13 +232,14 @@ class VisualHull:
         Fixed shapes throughout (no boolean indexing, no host sync): safe under
         ``torch.compile`` and CUDA graphs.
 
-        Method: [near, far] is clipped to the cube; M = ceil(sqrt(3) R / 2) + 2 points spaced
-        evenly on it (so at most 2h apart in space, for any direction length) are looked
-        up; the bounds are the first and last occupied points, widened by one cell. Why
-        this never cuts the object: a point x of the ray in a cell kept by the carving has
-        the ball of radius h around it inside the dilated grid, so the ray's stretch of
-        length 2h centred at x (or its part inside [near, far], which then holds an end
-        point) holds an occupied lookup point, within h of x.
+        Method: [near, far] is clipped to the unit sphere (where the object is, by the
+        normalised frame's definition); M = ceil(R / 2) + 2 points spaced evenly on that
+        (so at most 2h apart in space, for any direction length) are looked up; the bounds
+        are the first and last occupied points, widened by one cell. Why this never cuts
+        the object: a point x of the ray inside the unit sphere and in a cell kept by the
+        carving has the ball of radius h around it inside the dilated grid, so the ray's
+        stretch of length 2h centred at x (or its part inside the clipped interval, which
+        then holds an end point) holds an occupied lookup point, within h of x.
 
         Args:
             origins: (B, 3) ray origins; dirs: (B, 3) directions (any length > 0).
@@ -333,25 +339,25 @@ class VisualHull:
 
 def _ray_points(origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
                 R: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Lookup points of `VisualHull.ray_bounds`: [near, far] clipped to the cube [-1, 1]^3,
-    ``ceil(sqrt(3) R / 2) + 2`` points evenly spaced on it (at most 2 / R * 2 apart in space).
+    """Lookup points of `VisualHull.ray_bounds`: [near, far] clipped to the unit sphere,
+    ``ceil(R / 2) + 2`` points evenly spaced on it (so at most ``2 h`` apart in space, as the
+    chord is at most 2 long).
 
     Returns:
         t: (B, n); pts: (B, n, 3); ok: (B, 1) bool, the clipped interval is not empty.
     """
-    inv = 1.0 / torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
-    ta = (-1.0 - origins) * inv  # (B, 3)
-    tb = (1.0 - origins) * inv
-    t0 = torch.minimum(ta, tb).amax(dim=-1, keepdim=True)  # (B, 1)
-    t1 = torch.maximum(ta, tb).amin(dim=-1, keepdim=True)
-    a = torch.maximum(near, t0)
-    b = torch.minimum(far, t1)
-    length = (b - a).clamp_min(0.0)  # (B, 1)
-    n = int(math.ceil(math.sqrt(3.0) * R / 2.0)) + 2
+    dd = (dirs * dirs).sum(-1, keepdim=True).clamp_min(1e-24)  # (B, 1)
+    b = (origins * dirs).sum(-1, keepdim=True) / dd
+    c = ((origins * origins).sum(-1, keepdim=True) - 1.0) / dd
+    disc = b * b - c
+    root = disc.clamp_min(0.0).sqrt()
+    lo = torch.maximum(near, -b - root)
+    hi = torch.minimum(far, -b + root)
+    n = int(math.ceil(R / 2.0)) + 2
     lin = torch.linspace(0.0, 1.0, n, device=near.device, dtype=near.dtype)
-    t = a + length * lin  # (B, n)
+    t = lo + (hi - lo).clamp_min(0.0) * lin  # (B, n)
     pts = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (B, n, 3)
-    return t, pts, b >= a
+    return t, pts, (disc >= 0) & (hi >= lo)
 
 
 def _cell_axis(R: int, device: torch.device | str = "cpu") -> Tensor:
