@@ -22,6 +22,7 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -30,6 +31,9 @@ from torch import Tensor
 
 from neus_l0.atomic import atomic_path
 from neus_l0.errors import NeusL0Error
+
+if TYPE_CHECKING:
+    from neus_l0.hull import VisualHull
 
 SdfFn = Callable[[Tensor], Tensor]
 """Maps points (P, 3) in the normalised frame to SDF values (P,) or (P, 1)."""
@@ -136,6 +140,8 @@ class ExtractionStats:
         blocks_kept: blocks evaluated densely (sparse).
         blocks_surface: kept blocks whose samples cross the level (marching cubes ran).
         seconds: wall time of SDF evaluation + marching cubes + merge.
+        blocks_outside_hull: blocks the SDF rule kept but the visual hull dropped (sparse
+            with a hull).
     """
 
     method: str
@@ -146,6 +152,7 @@ class ExtractionStats:
     blocks_kept: int = 0
     blocks_surface: int = 0
     seconds: float = 0.0
+    blocks_outside_hull: int = 0
 
 
 def keep_blocks(coarse: np.ndarray, block_diag: float, lipschitz: float = 1.5,
@@ -228,10 +235,45 @@ def _merge_blocks(verts: list[np.ndarray], faces: list[np.ndarray],
     return V[used], F[ok]
 
 
+def _blocks_in_region(region: VisualHull, keep: np.ndarray, coarse: np.ndarray,
+                      cidx: np.ndarray, step: float, bound: float,
+                      level: float) -> tuple[np.ndarray, int]:
+    """Restrict the blocks `keep_blocks` kept to those meeting a hull region.
+
+    A block is evaluated when its box meets the region and either `keep` says it may hold
+    the level set, or it straddles the region's boundary with a corner at or below `level`
+    (the cap of a negative region that the region cuts).
+
+    Args:
+        region: the hull's region for this grid (`VisualHull.for_grid`).
+        keep: (n0, n1, n2) bool from `keep_blocks`; coarse: (n0+1, n1+1, n2+1) values.
+        cidx: (n + 1,) grid index of each block corner along an axis.
+        step, bound: the grid spacing and half-size.
+
+    Returns:
+        the new keep mask, and how many blocks of `keep` the region dropped.
+    """
+    n = keep.shape[0]
+    ax = torch.as_tensor(-bound + cidx * step, dtype=torch.float32)  # (n + 1,)
+    ii = torch.stack(torch.meshgrid(*(torch.arange(n),) * 3, indexing="ij"), -1).reshape(-1, 3)
+    occ, total = region.cells_in_boxes(ax[ii], ax[ii + 1])
+    touch = (occ > 0).cpu().numpy().reshape(keep.shape)
+    edge = (occ < total).cpu().numpy().reshape(keep.shape) & touch
+    g = coarse - np.float32(level)
+    neg = np.zeros(keep.shape, bool)
+    for a in (0, 1):
+        for b in (0, 1):
+            for c in (0, 1):
+                neg |= g[a:a + n, b:b + n, c:c + n] <= 0
+    new = touch & (keep | (edge & neg))
+    return new, int((keep & ~touch).sum())
+
+
 def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
                           level: float = 0.0, device: str | torch.device = "cpu",
                           chunk: int = 2**18, block: int = 8, lipschitz: float = 1.5,
-                          dilate: int = 1) -> tuple[np.ndarray, np.ndarray, ExtractionStats]:
+                          dilate: int = 1, hull: VisualHull | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, ExtractionStats]:
     """Marching cubes of an SDF on ``linspace(-bound, bound, R)^3``, evaluated near the surface.
 
     1. The SDF at every `block`-th grid sample per axis (the last sample always included):
@@ -247,6 +289,13 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
        exactly: the mesh is watertight where the surface is
        closed.
 
+    With a visual `hull` (`neus_l0.hull.VisualHull`), only blocks that meet its region
+    ``hull.for_grid(step)`` are evaluated, and grid samples outside the region read as far
+    outside (+1e3): no surface is exported outside the region (floaters vanish; a negative
+    region that leaks out is capped at its boundary, and blocks on the region's boundary
+    with a negative corner are kept for that cap). Inside the carved hull the mesh is the
+    one without a hull: every grid cube that meets it has all its corners in the region.
+
     Memory: the coarse grid, one batch of blocks and the output mesh; never the R^3 volume.
 
     Args:
@@ -258,6 +307,7 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
         chunk: the most points per call of `sdf_fn`.
         block: cells per block edge.
         lipschitz, dilate: the block rule (see `keep_blocks`).
+        hull: optional visual hull: evaluate and export only inside it.
 
     Returns:
         vertices (V, 3) float64 in the normalised frame, faces (F, 3) int64 (outward normals),
@@ -280,8 +330,13 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
     ca = axis[cidx]
     coarse = _sdf_on_axes(sdf_fn, ca, ca, ca, chunk)  # (nb+1, nb+1, nb+1)
     evals = (nb + 1) ** 3
-    kept = np.argwhere(keep_blocks(coarse, math.sqrt(3.0) * B * step, lipschitz, level,
-                                   dilate))  # (K, 3)
+    keep = keep_blocks(coarse, math.sqrt(3.0) * B * step, lipschitz, level, dilate)
+    region, n_outside = None, 0
+    if hull is not None:
+        region = hull.for_grid(step)
+        keep, n_outside = _blocks_in_region(region, keep, coarse, cidx.cpu().numpy(),
+                                            step, bound, level)
+    kept = np.argwhere(keep)  # (K, 3)
     del coarse
     extent = np.minimum(B, cells - kept * B) + 1  # (K, 3) samples per axis in each block
 
@@ -299,6 +354,9 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
         pts = pts.reshape(-1, 3)  # (m * (B+1)^3, 3)
         with torch.no_grad():
             vals = torch.cat([sdf_fn(p).reshape(-1) for p in pts.split(chunk)])
+            if region is not None:
+                vals = torch.where(region.contains(pts).to(vals.device), vals.float(),
+                                   float(_NONFINITE))
         evals += len(pts)
         vals = vals.float().cpu().numpy().reshape(len(bi), B + 1, B + 1, B + 1)
         vals[~np.isfinite(vals)] = _NONFINITE
@@ -325,7 +383,7 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
                           f"[-{bound}, {bound}]^3 (sparse extraction at {R}^3)")
     V, F = _merge_blocks(verts, faces, on_face)
     stats = ExtractionStats("sparse", R, evals, R**3, nb**3, len(kept), n_surface,
-                            time.perf_counter() - t0)
+                            time.perf_counter() - t0, n_outside)
     return V * step - bound, F, stats
 
 
@@ -381,7 +439,7 @@ def vertex_colors(model, vertices: np.ndarray, device: str | torch.device = "cpu
 def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: float = 1.0,
                  clean: bool = True, colors: bool = False, device: str | torch.device = "cpu",
                  chunk: int = 2**18, method: str = "auto", block: int = 8,
-                 lipschitz: float = 1.5) -> trimesh.Trimesh:
+                 lipschitz: float = 1.5, hull: VisualHull | None = None) -> trimesh.Trimesh:
     """The trained SDF's zero level set in world units.
 
     Args:
@@ -394,6 +452,9 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
         method: "dense" (the whole grid), "sparse" (`sparse_marching_cubes`) or "auto"
             (sparse above `SPARSE_ABOVE` samples per axis).
         block, lipschitz: the sparse path's block size and block rule.
+        hull: optional `neus_l0.hull.VisualHull` (normalised frame): nothing is exported
+            outside ``hull.for_grid(step)`` (see `sparse_marching_cubes`; the dense path
+            reads samples outside it as far outside too).
 
     Returns:
         the mesh in world units; ``mesh.metadata["extraction"]`` holds the
@@ -410,10 +471,18 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
     if method == "sparse":
         verts, faces, stats = sparse_marching_cubes(f, resolution, bound, device=device,
                                                     chunk=chunk, block=block,
-                                                    lipschitz=lipschitz)
+                                                    lipschitz=lipschitz, hull=hull)
     else:
         t0 = time.perf_counter()
-        verts, faces = marching_cubes(sdf_grid(f, resolution, bound, device, chunk), bound)
+        g = f
+        if hull is not None:
+            region = hull.for_grid(2.0 * bound / (int(resolution) - 1))
+
+            def g(p: Tensor) -> Tensor:
+                v = f(p).reshape(-1).float()
+                return torch.where(region.contains(p).to(v.device), v, float(_NONFINITE))
+
+        verts, faces = marching_cubes(sdf_grid(g, resolution, bound, device, chunk), bound)
         R = int(resolution)
         stats = ExtractionStats("dense", R, R**3, R**3, seconds=time.perf_counter() - t0)
     mesh = trimesh.Trimesh(verts, faces, process=False)
