@@ -720,3 +720,9 @@ def format_report(report: HullReport) -> str:
              f"({n_carve} of {len(report.status)} views carve; {report.seconds:.1f} s)"]
     lines += [f"warning      {w}" for w in report.warnings]
     return "\n".join(lines)
+
+
+def load_run_hull(run_dir: str | Path, device: str | torch.device = "cpu") -> VisualHull | None:
+    """The hull a training run carved (``RUN/hull.pt``), or None when it has none."""
+    path = Path(run_dir) / "hull.pt"
+    return VisualHull.load(path, device) if path.is_file() else None

@@ -13,6 +13,7 @@ model every pixel counts, and there is no pool.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 
 import torch
@@ -37,9 +38,62 @@ class PixelPool:
     fraction: float
 
 
+def hull_silhouette(occupancy: Tensor, intrinsics: Tensor, c2w: Tensor, height: int,
+                    width: int) -> Tensor:
+    """Pixels whose rays may meet a voxel set: a conservative silhouette.
+
+    Every boundary cell (an occupied cell with an empty 6-neighbour or on the grid's edge;
+    the silhouette of a solid is its boundary's) is projected by its centre, and the image
+    of those centres is dilated by the largest projected radius of a cell's bounding ball
+    over all of them: each cell's footprint lies in the disc of its own radius around its
+    centre, so the union of footprints is covered.
+
+    Args:
+        occupancy: (R, R, R) bool over ``[-1, 1]^3``.
+        intrinsics: (3, 3); c2w: (4, 4) camera-to-world, normalised frame.
+        height, width: the image size.
+
+    Returns:
+        (H, W) bool, True where a ray may meet an occupied cell.
+    """
+    R = occupancy.shape[0]
+    cell = 2.0 / R
+    occ = occupancy.bool()
+    pad = torch.nn.functional.pad(occ[None, None].float(), (1, 1, 1, 1, 1, 1))[0, 0]
+    interior = torch.ones_like(occ)
+    for axis in range(3):
+        for shift in (0, 2):
+            interior &= pad.narrow(axis, shift, R).narrow((axis + 1) % 3, 1, R) \
+                .narrow((axis + 2) % 3, 1, R).bool()
+    ijk = (occ & ~interior).nonzero().to(c2w.dtype)  # (M, 3) boundary cells
+    out = torch.zeros(height, width, dtype=torch.bool, device=c2w.device)
+    if ijk.numel() == 0:
+        return out
+    centres = -1.0 + cell * (ijk + 0.5)
+    cam = (centres - c2w[:3, 3]) @ c2w[:3, :3]  # (M, 3) camera frame
+    z = cam[:, 2]
+    ball = cell * 3**0.5 / 2.0
+    if (z <= ball).any():  # a cell at or behind the camera: every pixel may see it
+        return torch.ones_like(out)
+    uv = (cam @ intrinsics.T)[:, :2] / z[:, None]  # (M, 2) pixel coordinates (x, y)
+    focal = float(intrinsics[0, 0].abs().max(intrinsics[1, 1].abs()))
+    radius = int(math.ceil(float((focal * ball / (z - ball)).max()))) + 1
+    x, y = uv[:, 0].round().long(), uv[:, 1].round().long()
+    keep = (x >= -radius) & (x < width + radius) & (y >= -radius) & (y < height + radius)
+    x, y = x[keep] + radius, y[keep] + radius
+    canvas = torch.zeros(height + 2 * radius, width + 2 * radius, device=c2w.device)
+    canvas[y, x] = 1.0
+    grown = torch.nn.functional.max_pool2d(canvas[None, None], 2 * radius + 1, stride=1,
+                                           padding=radius)[0, 0]
+    return grown[radius:radius + height, radius:radius + width] > 0
+
+
 def reachable_pixels(scene: Scene, cfg: RenderConfig, bounds: Sequence[RayBounds] = (),
                      background: bool = False, chunk: int = 1 << 16) -> PixelPool | None:
     """The pixels whose rays cross the unit sphere and every one of `bounds`.
+
+    A bound with an ``occupancy`` grid (a visual hull) is first tested by its silhouette
+    (`hull_silhouette`, cheap), and only the pixels inside it by `ray_bounds`.
 
     Args:
         scene: the scene (its device does the work).
@@ -56,12 +110,19 @@ def reachable_pixels(scene: Scene, cfg: RenderConfig, bounds: Sequence[RayBounds
     if background or not (cfg.cull_outside_sphere or bounds):
         return None
     hw = scene.height * scene.width
+    grids = [b.occupancy for b in bounds if isinstance(getattr(b, "occupancy", None), Tensor)]
     found = []
     for v in range(scene.n_views):
         o, d = (x.reshape(-1, 3) for x in image_rays(scene, v))
-        for s in range(0, hw, chunk):
-            active = ray_bounds(o[s:s + chunk], d[s:s + chunk], cfg, bounds)[2]
-            found.append(active.nonzero().squeeze(1) + (v * hw + s))
+        candidates = torch.arange(hw, device=o.device)
+        for grid in grids:
+            sil = hull_silhouette(grid.to(o.device), scene.intrinsics[v], scene.c2w[v],
+                                  scene.height, scene.width).reshape(-1)
+            candidates = candidates[sil[candidates]]
+        for s in range(0, candidates.numel(), chunk):
+            rows = candidates[s:s + chunk]
+            active = ray_bounds(o[rows], d[rows], cfg, bounds)[2]
+            found.append(rows[active] + v * hw)
     pixels = torch.cat(found)
     if pixels.numel() == 0:
         return None

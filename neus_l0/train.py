@@ -453,6 +453,7 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
                      occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
     loop.generator.manual_seed(cfg.train.seed)
     loop.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
+    loop.setup.bounds = run_hull(scene, cfg, run_dir)
     loop.setup.pool = reachable_pixels(scene, cfg.render, loop.setup.bounds,
                                        background=model.background is not None)
     loop.setup.compiled = compiled_step(render_and_loss, cfg, device)
@@ -462,6 +463,26 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
         loop.rays = rays or loop.rays
         loop.last_checkpoint = ckpt
     return loop
+
+
+def run_hull(scene: Scene, cfg: Config, run_dir: Path) -> tuple:
+    """The run's visual hull as a bounds tuple (empty without masks or when it is off).
+
+    Carved at the first start and saved as ``RUN/hull.pt``; a resume loads that file. Each
+    warning of the carving (a suspicious mask, named) is one line on stderr.
+    """
+    h = cfg.render.hull
+    if not (h.enabled and scene.has_masks):
+        return ()
+    import sys
+
+    from neus_l0.hull import hull_for_run
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    hull = hull_for_run(scene, run_dir / "hull.pt", h.resolution, h.margin_px)
+    for line in (hull.report.warnings if hull.report is not None else []):
+        print(f"neus-l0: visual hull: {line}", file=sys.stderr, flush=True)
+    return (hull,)
 
 
 def _write_run_files(loop: TrainLoop) -> None:

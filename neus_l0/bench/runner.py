@@ -269,6 +269,7 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
 
     from neus_l0.checkpoint import load_trained_model
     from neus_l0.errors import NeusL0Error
+    from neus_l0.hull import load_run_hull
     from neus_l0.mesh import export_mesh, extract_mesh
 
     points = []
@@ -284,7 +285,8 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         t0 = time.monotonic()
         try:
             mesh = extract_mesh(model, np.asarray(scale_mat), resolution=spec.resolution,
-                                clean=True, device=spec.device)
+                                clean=True, device=spec.device,
+                                hull=load_run_hull(spec.run_dir, spec.device))
         except NeusL0Error as exc:
             points.append(curve_point(elapsed[iteration], iteration, None, None, str(exc)))
             continue
@@ -362,6 +364,7 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     from neus_l0.bench.sample_distance import SampleDistanceHook, SurfaceDistance
     from neus_l0.checkpoint import load_trained_model
     from neus_l0.data.scene import load_scene
+    from neus_l0.hull import load_run_hull
     from neus_l0.mesh import export_mesh, extract_mesh
     from neus_l0.train import train
 
@@ -397,7 +400,7 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     t_extract = time.monotonic()
     report(f"mesh: marching cubes {spec.resolution}^3")
     mesh = extract_mesh(model, np.asarray(full.scale_mat), resolution=spec.resolution,
-                        clean=True, device=spec.device)
+                        clean=True, device=spec.device, hull=load_run_hull(run_dir, spec.device))
     timings["extract_s"] = time.monotonic() - t_extract
     mesh_path = export_mesh(mesh, run_dir / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0

@@ -88,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
     from neus_l0.device import pick_device
+    from neus_l0.hull import load_run_hull
     from neus_l0.mesh import export_mesh, extract_mesh
     from neus_l0.train import train
 
@@ -128,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"[3/4] extracting the mesh at {args.resolution}^3 ...", flush=True)
     model, _, info = load_trained_model(run_dir, device)
     mesh = extract_mesh(model, np.asarray(info["scale_mat"]), resolution=args.resolution,
-                        clean=True, device=device)
+                        clean=True, device=device, hull=load_run_hull(run_dir, device))
     mesh_path = export_mesh(mesh, out / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0
 

@@ -85,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
     from neus_l0.checkpoint import load_trained_model
     from neus_l0.device import pick_device
+    from neus_l0.hull import load_run_hull
     from neus_l0.mesh import export_mesh, extract_mesh, from_world, vertex_colors
     from neus_l0.mesh_cleanup import clean_up
 
@@ -94,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     model, _, info = load_trained_model(args.run, device, args.checkpoint)
     scale_mat = np.asarray(info["scale_mat"])
     mesh = extract_mesh(model, scale_mat, resolution=args.resolution, clean=args.clean,
-                        device=device, method=method)
+                        device=device, method=method, hull=load_run_hull(args.run, device))
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "
           f"evaluations ({st['sdf_evals'] / st['dense_evals']:.1%} of the dense grid), "
