@@ -190,7 +190,8 @@ def sdf_and_gradient(net: SDFNetwork, x: Tensor, create_graph: bool,
         create_graph: keep the graph of the gradient (for the Eikonal loss and the colour
             network's normal input in training); False returns it detached.
         method: `autograd`, `analytic` or `finite-difference` (see the module docstring);
-            None: the network's configured `gradient`.
+            None: the network's configured `gradient` (`autograd` for a module without
+            that attribute).
 
     Returns:
         output (N, 1 + feature_dim) and gradient (N, 3). With `autograd` the output always
@@ -198,7 +199,8 @@ def sdf_and_gradient(net: SDFNetwork, x: Tensor, create_graph: bool,
         it follows the caller's grad mode, and so does the progressive hash grid's count
         of training passes.
     """
-    method = getattr(net, "gradient", "autograd") if method is None else method
+    if method is None:  # stand-ins of SDFNetwork (any module with forward) get autograd
+        method = getattr(net, "gradient", "autograd")
     if method != "autograd":
         if method == "analytic":
             out, grad = net.forward_and_gradient(x.detach())
