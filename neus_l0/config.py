@@ -204,8 +204,10 @@ class OccupancyConfig:
     block: int = 4
     """Cells per axis of the blocks tested first in an update (1: test every cell)."""
     compact: bool = True
-    """Drop the rays that cross nothing before any network work (on CUDA one host sync
-    per batch, to learn how many rays remain); off: keep the batch rectangular."""
+    """Kept so that older configs load; it no longer changes anything: training keeps every
+    batch's shape (rays that cross nothing are masked, and rays are drawn from pixels that
+    can reach the surface, `neus_l0.pixel_pool`), and `render_image` always skips rays that
+    cross nothing."""
 
 
 @dataclass

@@ -152,7 +152,9 @@ def entry_alpha(prev_sdf: Tensor, slope: Tensor, skipped: Tensor, inv_s: Tensor)
     inside the unit sphere for ``skipped`` before that. NeuS would have integrated that
     stretch too; with the first section's linear SDF model extended back over it (SDF
     ``prev_sdf - slope * skipped`` at the sphere, `slope` <= 0), its discrete opacity is
-    NeuS's section formula. It is about 0 when the ray enters outside the object, and about
+    NeuS's section formula, ``1 - cdf(end) / cdf(start)`` (evaluated in log space, without
+    NeuS's 1e-5 guards, which would leak opacity where both cdfs are tiny). It is about 0
+    when the ray enters outside the object, and about
     1 when it enters inside the SDF's negative region head-on: without it such a ray would
     see no zero crossing and stay transparent, so a network could fill the whole hull at no
     cost (measured: the demo scored Chamfer 18.5 with the hull against 7.3 without after
@@ -166,9 +168,10 @@ def entry_alpha(prev_sdf: Tensor, slope: Tensor, skipped: Tensor, inv_s: Tensor)
     Returns:
         (B,) opacity in [0, 1] (0 where nothing was skipped).
     """
-    start_cdf = torch.sigmoid((prev_sdf - slope * skipped) * inv_s)
-    end_cdf = torch.sigmoid(prev_sdf * inv_s)
-    return ((start_cdf - end_cdf + 1e-5) / (start_cdf + 1e-5)).clip(0.0, 1.0) * (skipped > 0)
+    # 1 - cdf(end) / cdf(start) in log space: exact where both cdfs are tiny (deep inside)
+    log_ratio = F.logsigmoid(prev_sdf * inv_s) - F.logsigmoid((prev_sdf - slope * skipped)
+                                                              * inv_s)
+    return (-torch.expm1(log_ratio)).clip(0.0, 1.0) * (skipped > 0)
 
 
 # ------------------------------------------------------------------------------------------
