@@ -4,20 +4,46 @@ A checkpoint (``RUN/checkpoints/ckpt_NNNNNNN.pt``) is a dict with ``iteration``,
 (state dict), ``optimizer`` (state dict), ``rng`` (the ray/sample generator's state and
 torch's global CPU/CUDA states), ``config`` (the resolved config as a dict), ``scale_mat``
 (4x4 list, normalised -> world) and ``has_background``.
+
+Damaged checkpoints. `load_newest_checkpoint` (used by `load_trained_model`, hence by
+``mesh``, ``demo`` and ``figures``, and by a resumed training) tries the checkpoints newest
+first. A file whose *content* is bad -- it does not unpickle (truncated, overwritten), lacks
+the checkpoint keys, or holds NaN/inf in the model or optimiser state (which
+`save_checkpoint` never writes, so the file was damaged afterwards) -- is renamed to
+``<name>.corrupt`` (kept for inspection, no longer listed) as soon as an older checkpoint
+loads, and one line on stderr names both. Failures that say nothing about the content (the
+file is missing or not readable, memory ran out, a module needed by the pickle is missing)
+stop the search with the error instead. When every checkpoint is bad nothing is renamed:
+the error names the newest one and why.
 """
 
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from neus_l0.atomic import atomic_write
 from neus_l0.errors import NeusL0Error
 
+if TYPE_CHECKING:
+    from neus_l0.config import Config
+    from neus_l0.fields import NeuSModel
+
 CKPT_RE = re.compile(r"^ckpt_(\d+)\.pt$")
+
+
+class CorruptCheckpointError(NeusL0Error):
+    """A checkpoint file whose content is unusable (truncated, not a checkpoint, NaN/inf)."""
+
+
+def _first_line(exc: BaseException, limit: int = 160) -> str:
+    """`Type: message` of an exception, cut to its first line and `limit` characters."""
+    text = f"{type(exc).__name__}: {exc}".strip().splitlines()[0]
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def checkpoint_path(run_dir: str | Path, iteration: int) -> Path:
@@ -82,18 +108,182 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     """Read a checkpoint and check it.
 
     Raises:
-        NeusL0Error: unreadable file, missing keys, or NaN/inf in the model or optimiser.
+        CorruptCheckpointError: the content is bad (does not unpickle, missing keys,
+            NaN/inf in the model or optimiser).
+        NeusL0Error: the file cannot be read for another reason (missing, no permission, a
+            folder, out of memory, a module the pickle names is missing).
     """
     path = Path(path)
     try:
         state = torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unreadable file is a user-facing error
-        raise NeusL0Error(f"{path}: cannot read checkpoint ({type(exc).__name__}: {exc})") from None
+    except (FileNotFoundError, PermissionError, IsADirectoryError, MemoryError, ImportError,
+            torch.OutOfMemoryError) as exc:
+        raise NeusL0Error(f"{path}: cannot read checkpoint ({_first_line(exc)})") from None
+    except Exception as exc:  # noqa: BLE001 - truncated zip, unpickling errors, EOF, ...
+        raise CorruptCheckpointError(f"{path}: cannot read checkpoint "
+                                     f"({_first_line(exc)})") from None
+    if not isinstance(state, dict):
+        raise CorruptCheckpointError(f"{path}: not a neus-l0 checkpoint (a "
+                                     f"{type(state).__name__}, not a dict)")
     missing = [k for k in ("iteration", "model", "optimizer", "config") if k not in state]
     if missing:
-        raise NeusL0Error(f"{path}: not a neus-l0 checkpoint (missing {', '.join(missing)})")
+        raise CorruptCheckpointError(f"{path}: not a neus-l0 checkpoint "
+                                     f"(missing {', '.join(missing)})")
     bad = _non_finite_key({"model": state["model"], "optimizer": state["optimizer"]})
     if bad:
-        raise NeusL0Error(f"{path}: refusing checkpoint with NaN/inf in '{bad}'; "
-                          "resume from an earlier checkpoint (delete this one)")
+        raise CorruptCheckpointError(f"{path}: refusing checkpoint with NaN/inf in '{bad}'; "
+                                     "resume from an earlier checkpoint (delete this one)")
     return state
+
+
+# ------------------------------------------------------------------------------------------
+# Training state: what a checkpoint holds and how a resume restores it.
+
+
+def rng_state(generator: torch.Generator) -> dict:
+    """The loop generator's state and torch's global CPU (and CUDA) states."""
+    state = {"generator": generator.get_state(), "torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng(generator: torch.Generator, state: dict) -> None:
+    """Inverse of `rng_state`."""
+    generator.set_state(state["generator"].cpu())
+    torch.set_rng_state(state["torch"].cpu())
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
+
+
+def restore_training(path: Path, state: dict, model: torch.nn.Module,
+                     optimizer: torch.optim.Optimizer, generator: torch.Generator,
+                     scaler: torch.amp.GradScaler, occupancy: Any | None = None) -> tuple[int, int]:
+    """Put a checkpoint's training state back (the resume of `neus_l0.train.train`).
+
+    Args:
+        path: the checkpoint (named in errors); state: its contents (`load_checkpoint`).
+        model, optimizer, generator, scaler: restored in place.
+        occupancy: the occupancy grid, restored from the checkpoint or, for a checkpoint of
+            a run without the grid, rebuilt from the restored SDF.
+
+    Returns:
+        the iteration to continue from and the batch size in force then.
+
+    Raises:
+        NeusL0Error: the checkpoint's networks do not fit the config's.
+    """
+    try:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+    except (RuntimeError, ValueError, KeyError) as exc:
+        raise NeusL0Error(f"{path}: does not fit the config's networks (resume with the "
+                          f"run's config.yaml): {str(exc).splitlines()[0]}") from None
+    restore_rng(generator, state["rng"])
+    if occupancy is not None and "occupancy" in state:
+        occupancy.load_state_dict(state["occupancy"])
+    elif occupancy is not None:
+        occupancy.update(model.sdf.sdf, model.variance.inv_s())
+    if "scaler" in state:
+        scaler.load_state_dict(state["scaler"])
+    return int(state["iteration"]), int(state.get("batch_size", 0))
+
+
+def prune_checkpoints(run_dir: Path, keep: int, protected: set[Path]) -> None:
+    """Delete all but the newest `keep` checkpoints that are not in `protected`."""
+    if keep <= 0:
+        return
+    others = [p for p in list_checkpoints(run_dir) if p not in protected]
+    for old in others[:-keep]:
+        old.unlink(missing_ok=True)
+def _set_aside(path: Path) -> Path:
+    """Rename a damaged checkpoint to `<name>.corrupt` (`.corrupt.1`, ... if taken)."""
+    target = path.with_name(path.name + ".corrupt")
+    n = 0
+    while target.exists():
+        n += 1
+        target = path.with_name(f"{path.name}.corrupt.{n}")
+    path.rename(target)
+    return target
+
+
+def load_newest_checkpoint(run_dir: str | Path,
+                           map_location: str | torch.device = "cpu") -> tuple[Path, dict] | None:
+    """The newest checkpoint of a run that loads, setting damaged newer ones aside.
+
+    Checkpoints are tried newest first. One that raises `CorruptCheckpointError` is renamed
+    to ``<name>.corrupt`` once an older one has loaded, and one line on stderr names the
+    damaged file(s) and the checkpoint used instead.
+
+    Args:
+        run_dir: the run folder (``RUN/checkpoints/ckpt_*.pt``).
+        map_location: passed to `torch.load`.
+
+    Returns:
+        (path, state) of the checkpoint used, or None when the run has no checkpoint.
+
+    Raises:
+        NeusL0Error: checkpoints exist but none loads (nothing is renamed then), or one
+            cannot be read for a reason that is not its content.
+    """
+    ckpts = list_checkpoints(run_dir)
+    if not ckpts:
+        return None
+    damaged: list[tuple[Path, str]] = []
+    for path in reversed(ckpts):
+        try:
+            state = load_checkpoint(path, map_location)
+        except CorruptCheckpointError as exc:
+            damaged.append((path, str(exc).removeprefix(f"{path}: ")))
+            continue
+        if damaged:
+            notes = "; ".join(f"{p.name} ({why}) kept as {_set_aside(p).name}"
+                              for p, why in damaged)
+            print(f"neus-l0: {Path(run_dir) / 'checkpoints'}: damaged {notes}; using "
+                  f"{path.name} (iteration {state['iteration']})", file=sys.stderr, flush=True)
+        return path, state
+    newest, why = damaged[0]
+    raise NeusL0Error(f"{newest}: none of the {len(ckpts)} checkpoints of {run_dir} loads "
+                      f"(the newest: {why}); delete or replace them")
+
+
+def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
+                       checkpoint: str | Path | None = None
+                       ) -> tuple[NeuSModel, Config, dict]:
+    """The networks of a finished (or interrupted) run.
+
+    Args:
+        run_dir: the run folder.
+        device: where the model goes (and the checkpoint's `map_location`).
+        checkpoint: a specific checkpoint file (loaded as is, no fallback); default the
+            newest that loads (`load_newest_checkpoint`).
+
+    Returns:
+        model (eval mode, built from the checkpoint's config with `cfg.train.seed`, as
+        training builds it), config, and the checkpoint dict without the heavy states
+        (``iteration``, ``scale_mat``, ..., and ``path``).
+
+    Raises:
+        NeusL0Error: no checkpoint, or none usable.
+    """
+    from neus_l0.config import config_from_dict
+    from neus_l0.fields import build_model
+
+    if checkpoint:
+        path = Path(checkpoint)
+        state = load_checkpoint(path, map_location=device)
+    else:
+        found = load_newest_checkpoint(run_dir, map_location=device)
+        if found is None:
+            raise NeusL0Error(f"{run_dir}: no checkpoints/ckpt_*.pt (train first)")
+        path, state = found
+    cfg = config_from_dict(state["config"])
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(cfg.train.seed)
+        model = build_model(cfg.model, background=cfg.render.n_outside > 0)
+    model = model.to(device)
+    model.load_state_dict(state["model"])
+    model.eval()
+    info = {k: v for k, v in state.items() if k not in ("model", "optimizer", "rng")}
+    info["path"] = path
+    return model, cfg, info

@@ -110,6 +110,13 @@ class SDFConfig:
     """Sharpness of the softplus activation."""
     weight_norm: bool = True
     """Weight normalisation on every linear layer."""
+    gradient: str = "autograd"
+    """How the SDF's spatial gradient (the Eikonal term's and the colour network's normal)
+    is computed (`neus_l0.fields.sdf`): `autograd` (torch.autograd.grad; in training a
+    double backward), `analytic` (the hash grid's / frequency encoding's derivative in
+    closed form carried forward through the MLP: one ordinary backward, same values) or
+    `finite-difference` (central differences with one batched 7-point pass; the step is
+    half a cell of the hash grid's finest active level, or 1e-3 without a hash grid)."""
 
 
 @dataclass
@@ -285,6 +292,12 @@ class TrainConfig:
     amp: str = "off"
     """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
     scaler and fused Adam); ignored on the CPU."""
+    compile: bool = False
+    """Compile the training step's render and loss with `torch.compile`
+    (`neus_l0.compile_step`; needs `model.sdf.gradient` analytic or finite-difference;
+    CUDA graphs on CUDA where they work)."""
+    tensorboard: bool = True
+    """Write TensorBoard events into the run folder (`tensorboard --logdir RUN`)."""
     eikonal_fraction: float = 1.0
     """Fraction of the samples (drawn at random each step) that the Eikonal term averages
     over; 1: all samples within radius 1.2 (NeuS)."""

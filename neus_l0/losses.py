@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from neus_l0.config import TrainConfig
+
+if TYPE_CHECKING:
+    from neus_l0.rendering import RenderOutput
 
 
 def color_l1(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
@@ -46,34 +52,72 @@ def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
     return F.binary_cross_entropy(weight_sum.clip(1e-3, 1.0 - 1e-3), mask)
 
 
-def neus_loss(out: dict[str, Tensor], target_rgb: Tensor, mask: Tensor, igr_weight: float,
-              mask_weight: float) -> dict[str, Tensor]:
-    """Total loss: colour L1 + igr_weight * Eikonal + mask_weight * mask BCE.
+def eikonal(gradients: Tensor, mask: Tensor) -> Tensor:
+    """NeuS's Eikonal term: the mean of ``(|grad| - 1)^2`` over the samples `mask` keeps.
+
+    Args:
+        gradients: (B, N, 3) SDF gradients; mask: (B, N) in {0, 1}.
+
+    Returns:
+        () loss (0 when the mask is empty).
+    """
+    eik = (gradients.norm(dim=-1) - 1.0) ** 2
+    return (mask * eik).sum() / (mask.sum() + 1e-5)
+
+
+def eikonal_indices(n: int, fraction: float, generator: torch.Generator | None,
+                    device: torch.device | str) -> Tensor:
+    """The ``ceil(fraction * n)`` sample indices (with replacement) of `eikonal_subset`."""
+    k = max(1, math.ceil(fraction * n))
+    return torch.randint(0, max(1, n), (k,), generator=generator, device=device)
+
+
+def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainConfig,
+              generator: torch.Generator | None = None,
+              mask_scale: float | Tensor = 1.0,
+              eikonal_idx: Tensor | None = None) -> dict[str, Tensor]:
+    """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE.
 
     Args:
         out: `neus_l0.rendering.render_rays` output.
         target_rgb: (B, 3); mask: (B, 1) binary (ones when masks are unused).
-        igr_weight, mask_weight: the loss weights.
+        cfg: `igr_weight`, `mask_weight`, `eikonal_fraction` (below 1: the Eikonal term
+            over a random subset of the samples, drawn from `generator`).
+        generator: random source of the Eikonal subset.
+        mask_scale: factor on the mask term: the fraction of all pixels that the batch was
+            drawn from (1: uniform over every pixel, as NeuS). Pixels whose rays cannot
+            reach the surface have zero opacity by construction, so their mask term is a
+            constant without gradient; drawing only from the others and scaling by that
+            fraction keeps NeuS's expected gradient.
+        eikonal_idx: the Eikonal subset's indices drawn beforehand (`eikonal_indices`).
 
     Returns:
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
         ``psnr``.
     """
-    color = color_l1(out["color"], target_rgb, mask)
-    eik = out["gradient_error"]
-    mloss = mask_bce(out["weight_sum"], mask) if mask_weight > 0 else torch.zeros_like(color)
-    loss = color + igr_weight * eik + mask_weight * mloss
+    color = color_l1(out.color, target_rgb, mask)
+    if cfg.eikonal_fraction < 1.0:
+        eik = eikonal_subset(out.gradients, out.eikonal_mask, cfg.eikonal_fraction, generator,
+                             eikonal_idx)
+    else:
+        eik = eikonal(out.gradients, out.eikonal_mask)
+    if cfg.mask_weight > 0:
+        mloss = mask_bce(out.weight_sum, mask)
+    else:
+        mloss = torch.zeros_like(color)
+    loss = color + cfg.igr_weight * eik + cfg.mask_weight * mask_scale * mloss
     return {
         "loss": loss,
         "color_loss": color,
         "eikonal_loss": eik,
         "mask_loss": mloss,
-        "psnr": masked_psnr(out["color"].detach(), target_rgb, mask),
+        "psnr": masked_psnr(out.color.detach(), target_rgb, mask),
     }
 
 
 def eikonal_subset(gradients: Tensor, mask: Tensor, fraction: float,
-                   generator: torch.Generator | None = None) -> Tensor:
+                   generator: torch.Generator | None = None,
+                   idx: Tensor | None = None) -> Tensor:
     """The Eikonal term over a random subset of the samples (drawn with replacement).
 
     A fixed number of samples, ``ceil(fraction * B * N)``, is drawn uniformly; the term is
@@ -91,8 +135,8 @@ def eikonal_subset(gradients: Tensor, mask: Tensor, fraction: float,
     """
     g = gradients.reshape(-1, 3)
     m = mask.reshape(-1)
-    k = max(1, math.ceil(fraction * m.numel()))
-    idx = torch.randint(0, max(1, m.numel()), (k,), generator=generator, device=g.device)
+    if idx is None:
+        idx = eikonal_indices(m.numel(), fraction, generator, g.device)
     if m.numel() == 0:
         return g.sum() * 0.0
     eik = (g[idx].norm(dim=-1) - 1.0) ** 2

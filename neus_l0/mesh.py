@@ -435,3 +435,9 @@ def export_mesh(mesh: trimesh.Trimesh, path: str | Path) -> Path:
     with atomic_path(path) as tmp:
         mesh.export(tmp, file_type=kind)
     return path
+
+
+def from_world(vertices: np.ndarray, scale_mat: np.ndarray) -> np.ndarray:
+    """Map (V, 3) world points back to the normalised frame (the inverse of `to_world`)."""
+    S = np.asarray(scale_mat, dtype=np.float64)
+    return np.linalg.solve(S[:3, :3], (np.asarray(vertices, np.float64) - S[:3, 3]).T).T

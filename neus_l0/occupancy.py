@@ -209,6 +209,11 @@ class OccupancyGrid(torch.nn.Module):
         """`ray_spans` on this grid."""
         return ray_spans(self.occ_dilated, origins, dirs, near, far)
 
+    def ray_bounds(self, origins: Tensor, dirs: Tensor, near: Tensor,
+                   far: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """`ray_spans` on this grid (the `neus_l0.rendering.RayBounds` protocol)."""
+        return ray_spans(self.occ_dilated, origins, dirs, near, far)
+
     def fraction_occupied(self) -> Tensor:
         """() fraction of occupied cells (a tensor: read it when logging)."""
         return self.occ.float().mean()

@@ -29,7 +29,7 @@ def splat_render(mesh: trimesh.Trimesh, world_mat: np.ndarray, width: int, heigh
         shade (H, W) float in [0, 1] (NaN where nothing is seen) and depth (H, W) camera-z
         (inf where nothing is seen).
     """
-    from neus_l0.data.cameras import camera_z_depth
+    from neus_l0.data.cameras import pixel_indices
 
     shade = np.full((height, width), np.nan)
     depth = np.full((height, width), np.inf)
@@ -37,16 +37,15 @@ def splat_render(mesh: trimesh.Trimesh, world_mat: np.ndarray, width: int, heigh
         return shade, depth
     pts, face = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
     normals = mesh.face_normals[face]
-    xy, z = camera_z_depth(world_mat, pts)
-    px = np.rint(xy).astype(np.int64)
-    ok = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < width) & (px[:, 1] >= 0) & (px[:, 1] < height)
-    px, z, pts, normals = px[ok], z[ok], pts[ok], normals[ok]
+    col, row, z = pixel_indices(world_mat, pts, height, width)
+    ok = col >= 0
+    col, row, z, pts, normals = col[ok], row[ok], z[ok], pts[ok], normals[ok]
     P = np.asarray(world_mat, dtype=np.float64)[:3, :4]
     centre = -np.linalg.solve(P[:, :3], P[:, 3])
     view = pts - centre
     view /= np.linalg.norm(view, axis=1, keepdims=True)
     lit = np.abs((normals * view).sum(1))  # two-sided head-light
-    flat = px[:, 1] * width + px[:, 0]
+    flat = row * width + col
     order = np.lexsort((z, flat))  # by pixel, nearest first
     flat, z, lit = flat[order], z[order], lit[order]
     first = np.r_[True, flat[1:] != flat[:-1]]

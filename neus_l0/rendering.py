@@ -25,13 +25,16 @@ Shapes: B rays, N samples per ray along the fine (sorted) `z_vals`.
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Sequence
+from typing import Protocol
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from neus_l0.config import RenderConfig
 from neus_l0.fields import NeuSModel, sdf_and_gradient
-from neus_l0.occupancy import OccupancyGrid
 from neus_l0.sampling import sample_l0, sample_pdf
 
 #: Sampler names and the `sample_l0` kind each uses (None: NeuS's piecewise constant).
@@ -64,7 +67,8 @@ def near_far_from_sphere(origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]
 
 
 def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
-                  generator: torch.Generator | None = None) -> Tensor:
+                  generator: torch.Generator | None = None,
+                  noise: Tensor | None = None) -> Tensor:
     """Uniform samples in [near, far], shifted by one random offset per ray if `perturb`.
 
     Args:
@@ -72,6 +76,7 @@ def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
         n_samples: samples per ray.
         perturb: jitter by U(-0.5, 0.5) * (far - near) / n_samples (NeuS's 2 / n_samples).
         generator: random source for the jitter.
+        noise: (B, 1) pre-drawn U(0, 1) (instead of drawing from `generator`).
 
     Returns:
         (B, n_samples) sorted.
@@ -79,13 +84,15 @@ def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
     lin = torch.linspace(0.0, 1.0, n_samples, device=near.device, dtype=near.dtype)
     z = near + (far - near) * lin  # (B, n)
     if perturb:
-        r = torch.rand(near.shape, generator=generator, device=near.device, dtype=near.dtype)
+        r = noise if noise is not None else torch.rand(
+            near.shape, generator=generator, device=near.device, dtype=near.dtype)
         z = z + (r - 0.5) * (far - near) / n_samples
     return z
 
 
 def outside_z_vals(far: Tensor, n_outside: int, n_samples: int, perturb: bool,
-                   generator: torch.Generator | None = None) -> Tensor:
+                   generator: torch.Generator | None = None,
+                   noise: Tensor | None = None) -> Tensor:
     """NeuS's background samples beyond `far`, uniform in inverse depth.
 
     Args:
@@ -94,6 +101,7 @@ def outside_z_vals(far: Tensor, n_outside: int, n_samples: int, perturb: bool,
         n_samples: coarse samples (sets the gap 1 / n_samples after `far`).
         perturb: stratified jitter within each stratum.
         generator: random source.
+        noise: (B, n_outside) pre-drawn U(0, 1) (instead of drawing from `generator`).
 
     Returns:
         (B, n_outside) sorted, all > far.
@@ -105,7 +113,8 @@ def outside_z_vals(far: Tensor, n_outside: int, n_samples: int, perturb: bool,
         mids = 0.5 * (s[:, 1:] + s[:, :-1])
         upper = torch.cat([mids, s[:, -1:]], -1)
         lower = torch.cat([s[:, :1], mids], -1)
-        r = torch.rand(s.shape, generator=generator, device=far.device, dtype=far.dtype)
+        r = noise if noise is not None else torch.rand(
+            s.shape, generator=generator, device=far.device, dtype=far.dtype)
         s = lower + (upper - lower) * r
     return far / torch.flip(s, dims=[-1]) + 1.0 / n_samples
 
@@ -346,60 +355,186 @@ def sphere_chord(origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]
     return t_in, t_out, hits
 
 
+class RayBounds(Protocol):
+    """Something that narrows rays' [near, far] to where the surface can be.
+
+    `neus_l0.occupancy.OccupancyGrid` and `neus_l0.hull.VisualHull` are ones. Fixed shapes:
+    no boolean indexing, no host synchronisation.
+    """
+
+    def ray_bounds(self, origins: Tensor, dirs: Tensor, near: Tensor,
+                   far: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """origins, dirs (B, 3); near, far (B, 1) -> lo, hi (B, 1), hits (B,) bool."""
+        ...
+
+
+def ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
+               bounds: Sequence[RayBounds] = ()) -> tuple[Tensor, Tensor, Tensor]:
+    """Where each ray's samples go, and whether it gets any.
+
+    Without culling (`cfg.cull_outside_sphere` off and no `bounds`): NeuS's [mid - 1,
+    mid + 1] for every ray. Otherwise the chord of the unit sphere, narrowed in turn by each
+    of `bounds`; a ray that misses the sphere or any of them is inactive.
+
+    Args:
+        origins, dirs: (B, 3) unit `dirs`.
+        cfg: `cull_outside_sphere`.
+        bounds: narrowing objects (visual hull, occupancy grid), applied in order.
+
+    Returns:
+        near, far: (B, 1) with far > near; active: (B,) bool.
+    """
+    if not cfg.cull_outside_sphere and not bounds:
+        near, far = near_far_from_sphere(origins, dirs)
+        return near, far, torch.ones(origins.shape[0], dtype=torch.bool, device=near.device)
+    near, far, active = sphere_chord(origins, dirs)
+    for b in bounds:
+        near, far, hits = b.ray_bounds(origins, dirs, near, far)
+        active = active & hits
+    far = torch.maximum(far, near + 1e-6)  # a tangent ray still gets a proper interval
+    return near, far, active
+
+
+@dataclasses.dataclass
+class RenderNoise:
+    """The uniforms one batch's jitter uses, drawn before rendering (a compiled step takes
+    tensors, not a generator).
+
+    Attributes:
+        coarse: (B, 1) U(0, 1): the coarse samples' shift.
+        outside: (B, n_outside) U(0, 1): the background samples' strata, or None.
+    """
+
+    coarse: Tensor
+    outside: Tensor | None = None
+
+
+def draw_noise(cfg: RenderConfig, n_rays: int, generator: torch.Generator | None,
+               device: torch.device | str) -> RenderNoise:
+    """The jitter of a batch of `n_rays` rays (see `RenderNoise`)."""
+    coarse = torch.rand((n_rays, 1), generator=generator, device=device)
+    outside = (torch.rand((n_rays, cfg.n_outside), generator=generator, device=device)
+               if cfg.n_outside > 0 else None)
+    return RenderNoise(coarse, outside)
+
+
+@dataclasses.dataclass
+class RenderOutput:
+    """What `render_rays` rendered: B rays, N samples each in [near, far].
+
+    Attributes:
+        color: (B, 3) composited colour.
+        weight_sum: (B, 1) opacity (foreground and background samples).
+        depth: (B, 1) the weighted mean of the midpoints inside the unit sphere.
+        normal: (B, 3) the weighted sum of gradients inside the sphere (not normalised).
+        weights: (B, N [+ n_outside]) compositing weights.
+        gradients: (B, N, 3) SDF gradients at the section midpoints.
+        eikonal_mask: (B, N) samples the Eikonal term counts (radius < 1.2, active rays).
+        t: (B, N) sorted sample positions; t_fine: (B, n_importance) the up-sampled ones
+            (sorted within each round); t_mid: (B, N) section midpoints.
+        inside_sphere: (B, N) midpoints inside the unit sphere.
+        active: (B,) rays that got samples (inactive rays have zero opacity inside
+            [near, far]; a background model still renders them).
+        s_val: () 1 / s.
+    """
+
+    color: Tensor
+    weight_sum: Tensor
+    depth: Tensor
+    normal: Tensor
+    weights: Tensor
+    gradients: Tensor
+    eikonal_mask: Tensor
+    t: Tensor
+    t_fine: Tensor
+    t_mid: Tensor
+    inside_sphere: Tensor
+    active: Tensor
+    s_val: Tensor
+
+    _OLD_NAMES = {"z_vals": "t", "z_fine": "t_fine", "mid_z_vals": "t_mid"}
+
+    def __getitem__(self, key: str) -> Tensor:
+        """``out["color"]``; the old dict names (``z_vals``, ``z_fine``, ``mid_z_vals``)."""
+        return getattr(self, self._OLD_NAMES.get(key, key))
+
+    def items(self) -> list[tuple[str, Tensor]]:
+        """(name, tensor) pairs, as a dict's."""
+        return [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)]
+
+
 def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
-                cfg: RenderConfig, sampler: str, cos_anneal_ratio: float, perturb: bool,
-                generator: torch.Generator | None, create_graph: bool,
-                sample_dist: float | Tensor) -> dict[str, Tensor]:
+                cfg: RenderConfig, sampler: str, cos_anneal_ratio: float | Tensor,
+                noise: RenderNoise | None, create_graph: bool) -> dict[str, Tensor]:
     """Samples in [near, far], up-sampling, and the SDF / colour networks on them.
 
     Args:
-        origins, dirs: (b, 3); near, far: (b, 1).
-        sample_dist: length of the last section (a number or (b, 1)).
+        origins, dirs: (B, 3); near, far: (B, 1).
 
     Returns:
-        dict with ``z`` (b, N) sorted, ``z_fine`` (b, n_importance), ``dists`` and ``mid``
-        (b, N), ``pts`` (b, N, 3) at the midpoints, ``gradients`` (b, N, 3), ``rgb``
-        (b, N, 3) and ``alpha`` (b, N), all float32 (network outputs are cast back from
-        any autocast precision).
+        dict with ``t`` (B, N) sorted, ``t_fine`` (B, n_importance), ``t_mid`` and
+        ``dists`` (B, N), ``pts`` (B, N, 3) at the midpoints, ``gradients`` (B, N, 3),
+        ``rgb`` (B, N, 3) and ``alpha`` (B, N), all float32 (network outputs are cast back
+        from any autocast precision).
     """
-    b = origins.shape[0]
-    z = coarse_z_vals(near, far, cfg.n_samples, perturb, generator)
-    z, z_fine = up_sample(model, origins, dirs, z, cfg, sampler)
-    N = z.shape[1]
-    last = (sample_dist.expand(b, 1) if isinstance(sample_dist, Tensor)
-            else torch.full_like(z[:, :1], sample_dist))
-    dists = torch.cat([z[:, 1:] - z[:, :-1], last], dim=-1)
-    mid = z + 0.5 * dists  # (b, N)
-    pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]  # (b, N, 3)
-    d = dirs[:, None, :].expand(b, N, 3)
+    B = origins.shape[0]
+    t = coarse_z_vals(near, far, cfg.n_samples, noise is not None,
+                      noise=None if noise is None else noise.coarse)
+    t, t_fine = up_sample(model, origins, dirs, t, cfg, sampler)
+    N = t.shape[1]
+    last = (far - near) / cfg.n_samples  # (B, 1) NeuS's 2 / n_samples on its own bounds
+    dists = torch.cat([t[:, 1:] - t[:, :-1], last], dim=-1)
+    mid = t + 0.5 * dists  # (B, N)
+    pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]  # (B, N, 3)
+    d = dirs[:, None, :].expand(B, N, 3)
     out, grad = sdf_and_gradient(model.sdf, pts.reshape(-1, 3), create_graph=create_graph)
     out, grad = out.float(), grad.float()
-    sdf = out[:, 0].reshape(b, N)
-    gradients = grad.reshape(b, N, 3)
+    sdf = out[:, 0].reshape(B, N)
+    gradients = grad.reshape(B, N, 3)
     rgb = model.color(pts.reshape(-1, 3), grad, d.reshape(-1, 3), out[:, 1:])
-    rgb = rgb.float().reshape(b, N, 3)
-    inv_s = model.variance.inv_s()
-    true_cos = (d * gradients).sum(-1)  # (b, N)
-    alpha = cos_anneal_alpha(sdf, true_cos, dists, inv_s, cos_anneal_ratio)
-    return {"z": z, "z_fine": z_fine, "dists": dists, "mid": mid, "pts": pts,
+    rgb = rgb.float().reshape(B, N, 3)
+    true_cos = (d * gradients).sum(-1)  # (B, N)
+    alpha = cos_anneal_alpha(sdf, true_cos, dists, model.variance.inv_s(), cos_anneal_ratio)
+    return {"t": t, "t_fine": t_fine, "dists": dists, "t_mid": mid, "pts": pts,
             "gradients": gradients, "rgb": rgb, "alpha": alpha}
 
 
+def _with_background(model: NeuSModel, origins: Tensor, dirs: Tensor, fg: dict[str, Tensor],
+                     inside: Tensor, far: Tensor, cfg: RenderConfig,
+                     noise: RenderNoise | None) -> tuple[Tensor, Tensor]:
+    """NeuS's blend: the background model outside the unit sphere and beyond `far`.
+
+    Returns:
+        alpha (B, N + n_outside) and rgb (B, N + n_outside, 3).
+    """
+    N = fg["t"].shape[1]
+    t_out = outside_z_vals(far, cfg.n_outside, cfg.n_samples, noise is not None,
+                           noise=None if noise is None else noise.outside)
+    bg_alpha, bg_rgb = background_alpha_color(model, origins, dirs,
+                                              torch.cat([fg["t"], t_out], dim=-1),
+                                              2.0 / cfg.n_samples)
+    alpha = fg["alpha"] * inside + bg_alpha[:, :N] * (1.0 - inside)
+    rgb = fg["rgb"] * inside[..., None] + bg_rgb[:, :N] * (1.0 - inside)[..., None]
+    return (torch.cat([alpha, bg_alpha[:, N:]], dim=-1),
+            torch.cat([rgb, bg_rgb[:, N:]], dim=1))
+
+
 def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-                sampler: str = "l0", *, cos_anneal_ratio: float = 1.0, perturb: bool = False,
-                generator: torch.Generator | None = None,
-                create_graph: bool = False, occupancy: OccupancyGrid | None = None
-                ) -> dict[str, Tensor]:
+                sampler: str = "l0", *, cos_anneal_ratio: float | Tensor = 1.0,
+                perturb: bool = False, generator: torch.Generator | None = None,
+                create_graph: bool = False, occupancy: RayBounds | None = None,
+                bounds: Sequence[RayBounds] = (),
+                noise: RenderNoise | None = None) -> RenderOutput:
     """Render a batch of rays with NeuS.
 
-    Skipping work (off by default, so NeuS is reproduced): with `cfg.cull_outside_sphere`
-    or an `occupancy` grid, a ray's coarse samples lie on its chord of the unit sphere,
-    tightened to the span of occupied cells (`OccupancyGrid.spans`); rays that miss the
-    sphere or cross no occupied cell are *inactive*: no samples, no SDF / colour work
-    (with `cfg.occupancy.compact`), zero opacity inside [near, far] (the background model,
-    if any, still renders them). Their per-sample outputs hold zeros at NeuS's uniform
-    positions. The coarse samples keep their number per ray (rectangular tensors), so
-    a tightened span means denser coarse samples where the surface can be.
+    Skipping work without changing shapes: with `cfg.cull_outside_sphere`, a visual hull
+    or an occupancy grid (`bounds`), a ray's coarse samples lie where it crosses all of
+    them (`ray_bounds`), so the same number of samples is denser where the surface can
+    be. Rays that cross nothing are *inactive*: masked to zero opacity inside [near, far]
+    (the background model, if any, still renders them). Every batch keeps its shape (no
+    compaction, no host synchronisation); callers that want to skip inactive rays' network
+    work draw their rays where the surface can be (`neus_l0.data.rays`) or compact before
+    calling (`render_image`).
 
     Args:
         model: the networks; `model.background` is used when `cfg.n_outside > 0`.
@@ -409,61 +544,33 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         cos_anneal_ratio: NeuS's cos annealing (1: unbiased).
         perturb: jitter the coarse (and background) samples, drawing from `generator`.
         generator: random source of the jitter.
+        noise: the jitter's uniforms drawn beforehand (`draw_noise`); given, it is used
+            whatever `perturb` says.
         create_graph: keep the graph of the SDF gradients (training: Eikonal loss).
-        occupancy: an occupancy grid (None: none).
+        occupancy: an occupancy grid (appended to `bounds`; kept for older callers).
+        bounds: objects that narrow the rays' bounds (see `ray_bounds`).
 
     Returns:
-        dict with ``color`` (B, 3); ``weights`` (B, N [+ n_outside]); ``weight_sum`` (B, 1);
-        ``gradients`` (B, N, 3) at the section midpoints; ``gradient_error`` () the Eikonal
-        term over samples within radius 1.2; ``eikonal_mask`` (B, N) those samples;
-        ``depth`` (B, 1) the weighted mean of the
-        midpoints inside the sphere; ``normal`` (B, 3) the weighted sum of gradients inside
-        the sphere (not normalised, as NeuS); ``z_vals`` (B, N) all sorted sample positions;
-        ``z_fine`` (B, n_importance) the up-sampled ones; ``mid_z_vals`` (B, N);
-        ``inside_sphere`` (B, N); ``active`` (B,) rays that got samples; ``s_val`` (1,)
-        = 1 / s.
+        a `RenderOutput`.
     """
-    B = origins.shape[0]
-    near, far = near_far_from_sphere(origins, dirs)
-    use_bg = cfg.n_outside > 0 and model.background is not None
-    z_out = (outside_z_vals(far, cfg.n_outside, cfg.n_samples, perturb, generator)
-             if use_bg else None)
-    args = (cfg, sampler, cos_anneal_ratio, perturb, generator, create_graph)
-    cull = cfg.cull_outside_sphere or occupancy is not None
-    if not cull:
-        fg = _foreground(model, origins, dirs, near, far, *args, 2.0 / cfg.n_samples)
-        active = torch.ones(B, dtype=torch.bool, device=origins.device)
-    else:
-        lo, hi, active = sphere_chord(origins, dirs)
-        if occupancy is not None:
-            lo, hi, crosses = occupancy.spans(origins, dirs, lo, hi)
-            active = active & crosses
-        step = (hi - lo) / cfg.n_samples  # (B, 1)
-        if cfg.occupancy.compact:
-            idx = active.nonzero().squeeze(1)  # the only host sync (CUDA) of culling
-            sub = _foreground(model, origins[idx], dirs[idx], lo[idx], hi[idx], *args,
-                              step[idx])
-            fg = _scatter_rows(sub, idx, origins, dirs, near, far, cfg)
-        else:
-            fg = _foreground(model, origins, dirs, lo, hi, *args, step)
-            keep = active[:, None].to(fg["alpha"].dtype)
-            fg["alpha"] = fg["alpha"] * keep
-            fg["rgb"] = fg["rgb"] * keep[..., None]
-    z, mid, alpha, rgb, gradients = fg["z"], fg["mid"], fg["alpha"], fg["rgb"], fg["gradients"]
-    N = z.shape[1]
-    sample_dist = 2.0 / cfg.n_samples
+    bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
+    if noise is None and perturb:
+        noise = draw_noise(cfg, origins.shape[0], generator, origins.device)
+    near, far, active = ray_bounds(origins, dirs, cfg, bounds)
+    fg = _foreground(model, origins, dirs, near, far, cfg, sampler, cos_anneal_ratio,
+                     noise, create_graph)
+    keep = active[:, None].to(fg["alpha"].dtype)  # (B, 1)
+    fg["alpha"] = fg["alpha"] * keep
+    N = fg["t"].shape[1]
 
     pts_norm = fg["pts"].norm(dim=-1)
-    inside = (pts_norm < 1.0).to(alpha.dtype).detach()
-    relax_inside = ((pts_norm < 1.2) & active[:, None]).to(alpha.dtype).detach()
-
+    inside = (pts_norm < 1.0).to(keep.dtype).detach()  # (B, N)
+    eikonal_mask = ((pts_norm < 1.2) & active[:, None]).to(keep.dtype).detach()
+    use_bg = cfg.n_outside > 0 and model.background is not None
     if use_bg:
-        bg_alpha, bg_rgb = background_alpha_color(model, origins, dirs,
-                                                  torch.cat([z, z_out], dim=-1), sample_dist)
-        alpha = alpha * inside + bg_alpha[:, :N] * (1.0 - inside)
-        alpha = torch.cat([alpha, bg_alpha[:, N:]], dim=-1)
-        rgb = rgb * inside[..., None] + bg_rgb[:, :N] * (1.0 - inside)[..., None]
-        rgb = torch.cat([rgb, bg_rgb[:, N:]], dim=1)
+        alpha, rgb = _with_background(model, origins, dirs, fg, inside, far, cfg, noise)
+    else:
+        alpha, rgb = fg["alpha"], fg["rgb"]
 
     weights = alpha * transmittance(alpha)  # (B, N [+ n_outside])
     weight_sum = weights.sum(-1, keepdim=True)
@@ -471,69 +578,30 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     if cfg.white_background and not use_bg:
         color = color + (1.0 - weight_sum)
 
-    eik = (gradients.norm(dim=-1) - 1.0) ** 2
-    gradient_error = (relax_inside * eik).sum() / (relax_inside.sum() + 1e-5)
-
     w_in = weights[:, :N] * inside  # (B, N)
-    w_in_sum = w_in.sum(-1, keepdim=True)
-    depth = (w_in * mid).sum(-1, keepdim=True) / w_in_sum.clamp_min(1e-6)
-    normal = (gradients * w_in[..., None]).sum(dim=1)
-    return {
-        "color": color,
-        "weights": weights,
-        "weight_sum": weight_sum,
-        "gradients": gradients,
-        "gradient_error": gradient_error,
-        "eikonal_mask": relax_inside,
-        "depth": depth,
-        "normal": normal,
-        "z_vals": z,
-        "z_fine": fg["z_fine"],
-        "mid_z_vals": mid,
-        "inside_sphere": inside,
-        "active": active,
-        "s_val": 1.0 / model.variance.inv_s(),
-    }
-
-
-def _scatter_rows(sub: dict[str, Tensor], idx: Tensor, origins: Tensor, dirs: Tensor,
-                  near: Tensor, far: Tensor, cfg: RenderConfig) -> dict[str, Tensor]:
-    """Put the foreground of the active rays `idx` back among all B rays.
-
-    Inactive rows get NeuS's uniform positions in [near, far] (no jitter), zero alpha,
-    colour and gradients. Differentiable with respect to the active rows.
-
-    Args:
-        sub: `_foreground` output for the rows `idx` (b,).
-        origins, dirs: (B, 3); near, far: (B, 1).
-    """
-    B = near.shape[0]
-    N = cfg.n_samples + (cfg.n_importance if cfg.up_sample_steps else 0)
-    z = coarse_z_vals(near, far, N, perturb=False)  # (B, N)
-    dists = torch.cat([z[:, 1:] - z[:, :-1], torch.full_like(z[:, :1], 2.0 / cfg.n_samples)],
-                      dim=-1)
-    mid = z + 0.5 * dists
-    full = {
-        "z": z, "dists": dists, "mid": mid,
-        "z_fine": near.expand(B, sub["z_fine"].shape[1]),
-        "pts": origins[:, None, :] + dirs[:, None, :] * mid[..., None],
-        "gradients": torch.zeros(B, N, 3, dtype=z.dtype, device=z.device),
-        "rgb": torch.zeros(B, N, 3, dtype=z.dtype, device=z.device),
-        "alpha": torch.zeros(B, N, dtype=z.dtype, device=z.device),
-    }
-    return {k: v.index_copy(0, idx, sub[k].to(v.dtype)) for k, v in full.items()}
+    depth = (w_in * fg["t_mid"]).sum(-1, keepdim=True) / w_in.sum(-1, keepdim=True).clamp_min(1e-6)
+    normal = (fg["gradients"] * w_in[..., None]).sum(dim=1)
+    return RenderOutput(
+        color=color, weight_sum=weight_sum, depth=depth, normal=normal, weights=weights,
+        gradients=fg["gradients"], eikonal_mask=eikonal_mask, t=fg["t"],
+        t_fine=fg["t_fine"], t_mid=fg["t_mid"], inside_sphere=inside, active=active,
+        s_val=(1.0 / model.variance.inv_s()).reshape(()),
+    )
 
 
 def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
                  sampler: str = "l0", cos_anneal_ratio: float = 1.0,
-                 chunk: int | None = None,
-                 occupancy: OccupancyGrid | None = None) -> dict[str, Tensor]:
+                 chunk: int | None = None, occupancy: RayBounds | None = None,
+                 bounds: Sequence[RayBounds] = ()) -> dict[str, Tensor]:
     """Render whole images in chunks of rays, without jitter or training graph.
+
+    Rays that cross nothing (see `render_rays`) skip the networks when there is no
+    background model: they keep zero opacity (and the background colour).
 
     Args:
         origins, dirs: (H, W, 3).
         chunk: rays per chunk (default `cfg.chunk`).
-        occupancy: an occupancy grid to skip empty space with (see `render_rays`).
+        occupancy, bounds: what narrows the rays (see `ray_bounds`).
 
     Returns:
         dict with ``color`` (H, W, 3), ``normal`` (H, W, 3), ``depth`` (H, W) and
@@ -541,16 +609,28 @@ def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderCon
     """
     H, W, _ = origins.shape
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
+    use_bg = cfg.n_outside > 0 and model.background is not None
+    if use_bg or not (cfg.cull_outside_sphere or bounds):
+        idx = torch.arange(o.shape[0], device=o.device)
+    else:  # evaluation, not training: a host sync to skip the empty rays is fine
+        idx = torch.cat([ray_bounds(o[s:s + 65536], d[s:s + 65536], cfg, bounds)[2]
+                         .nonzero().squeeze(1) + s for s in range(0, o.shape[0], 65536)])
+    background = 1.0 if cfg.white_background and not use_bg else 0.0
+    res = {
+        "color": torch.full((o.shape[0], 3), background, device=o.device),
+        "normal": torch.zeros(o.shape[0], 3, device=o.device),
+        "depth": torch.zeros(o.shape[0], 1, device=o.device),
+        "weight_sum": torch.zeros(o.shape[0], 1, device=o.device),
+    }
     chunk = chunk or cfg.chunk
-    keys = ("color", "normal", "depth", "weight_sum")
-    parts: dict[str, list[Tensor]] = {k: [] for k in keys}
-    for start in range(0, o.shape[0], chunk):
-        out = render_rays(model, o[start:start + chunk], d[start:start + chunk], cfg, sampler,
-                          cos_anneal_ratio=cos_anneal_ratio, perturb=False,
-                          occupancy=occupancy)
-        for k in keys:
-            parts[k].append(out[k].detach())
-    res = {k: torch.cat(v, dim=0) for k, v in parts.items()}
+    for start in range(0, idx.shape[0], chunk):
+        rows = idx[start:start + chunk]
+        with torch.no_grad():
+            out = render_rays(model, o[rows], d[rows], cfg, sampler,
+                              cos_anneal_ratio=cos_anneal_ratio, perturb=False, bounds=bounds)
+        for k in res:
+            res[k][rows] = out[k].detach().float()
     return {
         "color": res["color"].reshape(H, W, 3),
         "normal": res["normal"].reshape(H, W, 3),

@@ -22,33 +22,52 @@ import dataclasses
 import json
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from neus_l0.atomic import atomic_write, atomic_write_json, atomic_write_text
+from neus_l0.atomic import atomic_write_json, atomic_write_text
+from neus_l0.callbacks import (
+    Checkpoints,
+    Hook,
+    HookCallback,
+    MetricsFile,
+    ProgressBar,
+    Snapshots,
+    TensorBoard,
+    TrainingCallback,
+    Validation,
+    synchronize,
+)
 from neus_l0.checkpoint import (
     checkpoint_path,
     latest_checkpoint,
-    list_checkpoints,
-    load_checkpoint,
+    load_newest_checkpoint,
+    load_trained_model,  # noqa: F401 (its home is neus_l0.checkpoint)
+    prune_checkpoints,
+    restore_training,
+    rng_state,
     save_checkpoint,
 )
-from neus_l0.config import Config, config_from_dict, dump_config, to_dict
-from neus_l0.data.rays import pixel_grid, pixel_rays, random_rays
+from neus_l0.compile_step import compiled_step
+from neus_l0.config import Config, dump_config, to_dict
+from neus_l0.data.rays import random_pixel_rays, random_rays
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields import NeuSModel, build_model
-from neus_l0.losses import eikonal_subset, neus_loss
+from neus_l0.interrupt import StopOnSignal
+from neus_l0.losses import eikonal_indices, neus_loss
 from neus_l0.occupancy import OccupancyGrid
-from neus_l0.rendering import render_image, render_rays
+from neus_l0.pixel_pool import PixelPool, reachable_pixels
+from neus_l0.rendering import RenderNoise, draw_noise, render_rays
+from neus_l0.runlock import RunLock
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
+from neus_l0.validation import validation_image, validation_views  # noqa: F401 (moved)
 
-#: A training hook: ``hook(iteration, model, scene, cfg) -> {name: number}``.
-Hook = Callable[[int, NeuSModel, Scene, Config], dict]
+__all__ = ["Hook", "TrainLoop", "TrainResult", "train", "train_step", "load_trained_model"]
 
 METRIC_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "s", "samples")
 
@@ -67,6 +86,9 @@ class TrainResult:
         stopped_early: whether `train.max_seconds` ended the run before `train.iters`.
         snapshots: one ``(mark, iteration, checkpoint)`` per snapshot mark of this call, in
             mark order (marks served by the same checkpoint repeat it).
+        signal: ``SIGTERM`` / ``SIGINT`` when one stopped the run (after finishing the step
+            and writing its checkpoint), else None.
+        exit_code: the shell's code for that signal (143, 130), else 0.
     """
 
     run_dir: Path
@@ -76,6 +98,8 @@ class TrainResult:
     seconds: float
     stopped_early: bool
     snapshots: list[tuple[float, int, Path]] = dataclasses.field(default_factory=list)
+    signal: str | None = None
+    exit_code: int = 0
 
 
 def make_model(cfg: Config, device: str | torch.device = "cpu") -> NeuSModel:
@@ -159,113 +183,235 @@ def next_batch_size(rays: int, samples: float, cfg: Config) -> int:
     return int(min(max(round(rays * t.sample_budget / samples), lo), hi))
 
 
+@dataclasses.dataclass
+class StepInputs:
+    """What one step draws and reads before rendering: no generator, no Python number that
+    changes between steps, so a compiled `render_and_loss` sees the same kinds of inputs
+    every step.
+
+    Attributes:
+        origins, dirs: (B, 3) the rays; rgb: (B, 3) their pixels; mask: (B, 1) binary (ones
+            when masks are unused).
+        noise: the jitter's uniforms (None: no jitter).
+        eikonal_idx: (k,) the Eikonal subset's samples (None: all samples).
+        anneal: () NeuS's cos-anneal ratio at this iteration.
+        mask_scale: the pixel pool's fraction (1: rays drawn from every pixel).
+    """
+
+    origins: Tensor
+    dirs: Tensor
+    rgb: Tensor
+    mask: Tensor
+    noise: RenderNoise | None
+    eikonal_idx: Tensor | None
+    anneal: Tensor
+    mask_scale: float
+
+
+def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
+                     generator: torch.Generator, pool: PixelPool | None) -> StepInputs:
+    """Draw one step's rays and random numbers (`StepInputs`), in a fixed order."""
+    if pool is None:
+        batch, mask_scale = random_rays(scene, n_rays, generator), 1.0
+    else:
+        batch = random_pixel_rays(scene, n_rays, pool.pixels, generator)
+        mask_scale = pool.fraction
+    r = cfg.render
+    noise = draw_noise(r, n_rays, generator, scene.device) if r.perturb else None
+    eik_idx = None
+    if cfg.train.eikonal_fraction < 1.0:
+        n_samples = n_rays * (r.n_samples + (r.n_importance if r.up_sample_steps else 0))
+        eik_idx = eikonal_indices(n_samples, cfg.train.eikonal_fraction, generator,
+                                  scene.device)
+    mask = batch["mask"]
+    mask = (mask > 0.5).float() if cfg.train.mask_weight > 0 else torch.ones_like(mask)
+    anneal = torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
+                          device=scene.device)
+    return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
+                      anneal, mask_scale)
+
+
+def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
+                    bounds: tuple) -> tuple[Tensor, Tensor]:
+    """Render a step's rays and compute its loss (what `train.compile` compiles).
+
+    Returns:
+        the loss () and the step's metrics (len(METRIC_NAMES),), detached.
+    """
+    with autocast(cfg, inputs.origins.device):
+        out = render_rays(model, inputs.origins, inputs.dirs, cfg.render, sampler,
+                          cos_anneal_ratio=inputs.anneal, create_graph=True, bounds=bounds,
+                          noise=inputs.noise)
+    losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
+                       eikonal_idx=inputs.eikonal_idx)
+    samples = out.active.sum() * out.t.shape[1]
+    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]
+    return losses["loss"], torch.stack([v.detach().reshape(()).float() for v in values])
+
+
+@dataclasses.dataclass
+class StepSetup:
+    """What a run builds once and every step uses (all optional).
+
+    Attributes:
+        bounds: what narrows the rays besides the sphere (a visual hull), before the grid.
+        sampler: the up-sampling draw (None: the config's).
+        pool: draw the rays from these pixels only (`neus_l0.pixel_pool`; None: from all).
+        compiled: a compiled `render_and_loss` (`neus_l0.compile_step`; None: eager).
+    """
+
+    bounds: tuple = ()
+    sampler: object = None
+    pool: PixelPool | None = None
+    compiled: Callable | None = None
+
+
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
                iteration: int, generator: torch.Generator, *,
                occupancy: OccupancyGrid | None = None,
                scaler: torch.amp.GradScaler | None = None,
-               batch_size: int | None = None) -> Tensor:
+               batch_size: int | None = None, setup: StepSetup | None = None) -> Tensor:
     """One optimisation step on a random batch of rays.
 
-    No host synchronisation, except where a switch asks for one on CUDA: the occupancy
-    grid's ray compaction (`render.occupancy.compact`, once per step) and its update
-    (once per `update_every` steps).
+    Fixed shapes and no host synchronisation, except the occupancy grid's update (once per
+    `update_every` steps) when the grid is on.
 
     Args:
         model, optimizer: the networks and their optimiser.
         scene: the scene, on the training device.
         cfg: the run config.
         iteration: the current iteration (sets the learning rate and the cos annealing).
-        generator: the source of the ray batch and of the sample jitter.
+        generator: the source of the ray batch, the sample jitter and the Eikonal subset.
         occupancy: the occupancy grid (updated here every `update_every` iterations).
         scaler: the fp16 gradient scaler (`make_scaler`); None: none.
         batch_size: rays of this step (None: `train.batch_size`).
+        setup: the run's hull bounds, sampler, pixel pool and compiled step (`StepSetup`).
 
     Returns:
         (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order
         (``samples``: foreground samples evaluated, active rays x samples per ray).
     """
+    # learning rate, batch and random numbers, grid update
+    setup = setup or StepSetup()
     set_learning_rate(optimizer, cfg, iteration)
-    batch = random_rays(scene, batch_size or cfg.train.batch_size, generator)
-    use_mask = cfg.train.mask_weight > 0
-    mask = (batch["mask"] > 0.5).float() if use_mask else torch.ones_like(batch["mask"])
+    inputs = draw_step_inputs(scene, cfg, iteration, batch_size or cfg.train.batch_size,
+                              generator, setup.pool)
     update_occupancy(occupancy, model, cfg, iteration)
-    with autocast(cfg, scene.device):
-        out = render_rays(model, batch["origins"], batch["dirs"], cfg.render, cfg.sampler,
-                          cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end),
-                          perturb=cfg.render.perturb, generator=generator, create_graph=True,
-                          occupancy=occupancy)
-    if cfg.train.eikonal_fraction < 1.0:
-        out["gradient_error"] = eikonal_subset(out["gradients"], out["eikonal_mask"],
-                                               cfg.train.eikonal_fraction, generator)
-    losses = neus_loss(out, batch["rgb"], mask, cfg.train.igr_weight, cfg.train.mask_weight)
+    bounds = tuple(setup.bounds) + ((occupancy,) if occupancy is not None else ())
+    # render and loss
+    step_fn = setup.compiled or render_and_loss
+    sampler = cfg.sampler if setup.sampler is None else setup.sampler
+    loss, metrics = step_fn(model, inputs, cfg, sampler, bounds)
+    # backward and update
     optimizer.zero_grad(set_to_none=True)
     if scaler is not None and scaler.is_enabled():
-        scaler.scale(losses["loss"]).backward()
+        scaler.scale(loss).backward()
         scaler.step(optimizer)
         scaler.update()
     else:
-        losses["loss"].backward()
+        loss.backward()
         optimizer.step()
-    samples = out["active"].sum() * out["z_vals"].shape[1]
-    values = [losses[k] for k in METRIC_NAMES[:5]] + [out["s_val"].reshape(()), samples]
-    return torch.stack([v.detach().reshape(()) for v in values])
+    return metrics
 
 
-def validation_views(scene: Scene, view: int, downscale: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Rays and ground truth of every `downscale`-th pixel of one view.
+class Clock:
+    """Training time: the wall-clock since `start`, less the spans run in `paused()`."""
 
-    Returns:
-        origins (h, w, 3), dirs (h, w, 3), rgb (h, w, 3).
-    """
-    xy = pixel_grid(scene.height, scene.width, scene.device)[::downscale, ::downscale]
-    h, w, _ = xy.shape
-    o, d = pixel_rays(scene.intrinsics[view], scene.c2w[view], xy.reshape(-1, 2))
-    rgb = scene.images[view, ::downscale, ::downscale]
-    return o.reshape(h, w, 3), d.reshape(h, w, 3), rgb
+    def __init__(self) -> None:
+        self.start = time.monotonic()
+        self._paused = 0.0
 
+    def elapsed(self) -> float:
+        """Seconds of training time so far."""
+        return time.monotonic() - self.start - self._paused
 
-def validation_image(model: NeuSModel, scene: Scene, cfg: Config, view: int,
-                     iteration: int, occupancy: OccupancyGrid | None = None) -> np.ndarray:
-    """Ground truth | rendered colour | normals (camera frame) of a downscaled view.
-
-    Returns:
-        (h, 3w, 3) uint8 RGB.
-    """
-    o, d, rgb = validation_views(scene, view, max(1, cfg.train.val_downscale))
-    out = render_image(model, o, d, cfg.render, cfg.sampler,
-                       cos_anneal_ratio(iteration, cfg.train.anneal_end),
-                       occupancy=occupancy)
-    rot = scene.c2w[view, :3, :3]  # camera -> world
-    normal_cam = out["normal"] @ rot  # (h, w, 3) world -> camera: n^T R = (R^T n)^T
-    tiles = [rgb, out["color"].clamp(0, 1), (normal_cam * 0.5 + 0.5).clamp(0, 1)]
-    img = torch.cat([t.detach().float().cpu() for t in tiles], dim=1)
-    return (img.numpy() * 255.0 + 0.5).astype(np.uint8)
+    @contextlib.contextmanager
+    def paused(self) -> Iterator[None]:
+        """Time spent inside does not count."""
+        t0 = time.monotonic()
+        try:
+            yield
+        finally:
+            self._paused += time.monotonic() - t0
 
 
-def _write_png(path: Path, rgb: np.ndarray) -> None:
-    import cv2
+@dataclasses.dataclass
+class TrainLoop:
+    """What the loop and its callbacks share (built by `train`)."""
 
-    def writer(tmp: Path) -> None:
-        ok, buf = cv2.imencode(".png", rgb[..., ::-1])
-        if not ok:
-            raise NeusL0Error(f"{path}: cannot encode PNG")
-        tmp.write_bytes(buf.tobytes())
+    cfg: Config
+    run_dir: Path
+    scene: Scene
+    model: NeuSModel
+    optimizer: torch.optim.Optimizer
+    scaler: torch.amp.GradScaler
+    generator: torch.Generator
+    occupancy: OccupancyGrid | None = None
+    setup: StepSetup = dataclasses.field(default_factory=StepSetup)
+    iteration: int = 0
+    rays: int = 0
+    clock: Clock = dataclasses.field(default_factory=Clock)
+    last_checkpoint: Path | None = None
+    protected: set[Path] = dataclasses.field(default_factory=set)
+    protect_snapshots: bool = False
 
-    atomic_write(path, writer)
+    @property
+    def device(self) -> torch.device:
+        return self.scene.device
+
+    @property
+    def bounds(self) -> tuple:
+        """Everything that narrows the rays: the setup's bounds, then the grid."""
+        return tuple(self.setup.bounds) + ((self.occupancy,) if self.occupancy is not None else ())
+
+    @contextlib.contextmanager
+    def evaluating(self) -> Iterator[None]:
+        """The model in eval mode without gradient, back in training mode after."""
+        self.model.eval()
+        try:
+            with torch.no_grad():
+                yield
+        finally:
+            self.model.train()
+
+    def wait_for_device(self) -> None:
+        """Let the queued steps finish (so that they count as training time)."""
+        synchronize(self.device)
+
+    def state(self) -> dict:
+        """The checkpoint of the current iteration (see `neus_l0.checkpoint`)."""
+        state = {
+            "iteration": self.iteration,
+            "batch_size": self.rays,
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "rng": rng_state(self.generator),
+            "config": to_dict(self.cfg),
+            "scale_mat": np.asarray(self.scene.scale_mat).tolist(),
+            "has_background": self.model.background is not None,
+        }
+        if self.occupancy is not None:
+            state["occupancy"] = self.occupancy.state_dict()
+        if self.scaler.is_enabled():
+            state["scaler"] = self.scaler.state_dict()
+        return state
+
+    def save(self) -> Path:
+        """Write the checkpoint of this iteration and prune the old ones."""
+        path = checkpoint_path(self.run_dir, self.iteration)
+        keep = self.cfg.train.keep_checkpoints
+        if not self.protect_snapshots:
+            self.last_checkpoint = save_checkpoint(path, self.state(), keep=keep)
+        else:
+            self.last_checkpoint = save_checkpoint(path, self.state(), keep=0)
+            prune_checkpoints(self.run_dir, keep, self.protected | {path})
+        return self.last_checkpoint
 
 
-def _rng_state(generator: torch.Generator) -> dict:
-    state = {"generator": generator.get_state(), "torch": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def _restore_rng(generator: torch.Generator, state: dict) -> None:
-    generator.set_state(state["generator"].cpu())
-    torch.set_rng_state(state["torch"].cpu())
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
+def _check_scene(scene: Scene, cfg: Config) -> None:
+    if cfg.train.mask_weight > 0 and not scene.has_masks:
+        raise ConfigError(f"{scene.root}: train.mask_weight={cfg.train.mask_weight} but the "
+                          "scene has no mask/ folder (use --conf womask or train.mask_weight=0)")
 
 
 def _truncate_metrics(path: Path, iteration: int) -> None:
@@ -282,40 +428,91 @@ def _truncate_metrics(path: Path, iteration: int) -> None:
     atomic_write_text(path, "".join(k + "\n" for k in keep))
 
 
-def _snapshot_checkpoints(path: Path) -> set[Path]:
-    """Checkpoints of the snapshot lines already in ``metrics.jsonl`` (before a resume)."""
-    if not path.exists():
-        return set()
-    found = set()
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            m = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if "snapshot_s" in m and "iter" in m:
-            found.add(checkpoint_path(path.parent, int(m["iter"])))
-    return found
+def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
+               resume: bool) -> TrainLoop:
+    """Networks, optimiser and generator, restored from the newest checkpoint on resume.
+
+    Raises:
+        NeusL0Error: nothing to resume, an existing run without `resume`, or a checkpoint
+            that does not fit.
+    """
+    if not resume and latest_checkpoint(run_dir) is not None:
+        raise NeusL0Error(f"{run_dir}: already holds checkpoints; pass --resume to continue "
+                          "or choose another --out")
+    found = load_newest_checkpoint(run_dir, map_location=device) if resume else None
+    if resume and found is None:
+        raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
+    ckpt, state = found if found is not None else (None, None)
+    _check_scene(scene, cfg)
+    scene = scene.to(device)
+    model = make_model(cfg, device)
+    loop = TrainLoop(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
+                     optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
+                     generator=torch.Generator(device=device),
+                     occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
+    loop.generator.manual_seed(cfg.train.seed)
+    loop.setup.pool = reachable_pixels(scene, cfg.render, loop.setup.bounds,
+                                       background=model.background is not None)
+    loop.setup.compiled = compiled_step(render_and_loss, cfg, device)
+    if state is not None:
+        loop.iteration, rays = restore_training(ckpt, state, model, loop.optimizer,
+                                                loop.generator, loop.scaler, loop.occupancy)
+        loop.rays = rays or loop.rays
+        loop.last_checkpoint = ckpt
+    return loop
 
 
-def _prune_checkpoints(run_dir: Path, keep: int, protected: set[Path]) -> None:
-    """Delete all but the newest `keep` checkpoints that are not in `protected`."""
-    if keep <= 0:
-        return
-    others = [p for p in list_checkpoints(run_dir) if p not in protected]
-    for old in others[:-keep]:
-        old.unlink(missing_ok=True)
+def _write_run_files(loop: TrainLoop) -> None:
+    """``config.yaml`` and ``run.json``; the metrics cut back to the resumed iteration."""
+    loop.run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(loop.run_dir / "config.yaml", dump_config(loop.cfg))
+    scene = loop.scene
+    atomic_write_json(loop.run_dir / "run.json", {
+        "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
+        "n_views": scene.n_views, "height": scene.height, "width": scene.width,
+    })
+    _truncate_metrics(loop.run_dir / "metrics.jsonl", loop.iteration)
 
 
-def _check_scene(scene: Scene, cfg: Config) -> None:
-    if cfg.train.mask_weight > 0 and not scene.has_masks:
-        raise ConfigError(f"{scene.root}: train.mask_weight={cfg.train.mask_weight} but the "
-                          "scene has no mask/ folder (use --conf womask or train.mask_weight=0)")
+def read_metrics(loop: TrainLoop, acc: Tensor, steps: int, last: Tensor,
+                 window: tuple[float, int]) -> dict:
+    """The metrics line of a log step: means over the window's `steps` steps.
+
+    The loop's only host synchronisation. Also sets the next batch size (from this step's
+    samples alone, so that a resume stays exact).
+
+    Raises:
+        NeusL0Error: a non-finite mean (training diverged).
+    """
+    *values, step_samples = torch.cat([acc / steps, last[-1:]]).tolist()
+    now = loop.clock.elapsed()
+    metrics = dict(zip(METRIC_NAMES, values, strict=True))
+    metrics.update(rays=loop.rays)
+    loop.rays = next_batch_size(loop.rays, step_samples, loop.cfg)
+    metrics.update(iter=loop.iteration, lr=loop.optimizer.param_groups[0]["lr"],
+                   its_per_s=(loop.iteration - window[1]) / max(now - window[0], 1e-9),
+                   elapsed=now)
+    if not all(math.isfinite(v) for v in values):
+        raise NeusL0Error(f"{loop.run_dir}: training diverged at iteration {loop.iteration} "
+                          f"(loss {metrics['loss']}); resume from the last checkpoint with a "
+                          "lower train.lr")
+    return metrics
+
+
+def default_callbacks(cfg: Config, progress: bool, hooks: Sequence[Hook],
+                      snapshots: Sequence[float]) -> list[TrainingCallback]:
+    """The loop's own bookkeeping, in the order it runs at each point."""
+    board = [TensorBoard()] if cfg.train.tensorboard else []
+    sinks = [board[0].image] if board else []
+    return [HookCallback(hooks), MetricsFile(), *board, ProgressBar(progress),
+            Validation(sinks), Checkpoints(), Snapshots(snapshots)]
 
 
 def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.device = "cpu",
           resume: bool = False, progress: bool = True,
           stop_at: int | None = None, hooks: Sequence[Hook] = (),
-          snapshots: Sequence[float] = ()) -> TrainResult:
+          snapshots: Sequence[float] = (),
+          callbacks: Sequence[TrainingCallback] = ()) -> TrainResult:
     """Train NeuS on `scene` and write the run folder.
 
     Args:
@@ -330,19 +527,12 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
         progress: show a tqdm bar.
         stop_at: stop (and checkpoint) at this iteration as if interrupted, keeping the
             schedule of `train.iters` (for tests and staged runs).
-        hooks: called as ``hook(iteration, model, scene, cfg) -> dict`` (model in eval mode,
-            no gradient) each time metrics are logged; their numbers join that line of
-            ``metrics.jsonl``. Their time is not counted in ``elapsed`` nor against
-            ``train.max_seconds``, so budgets stay comparable with and without them.
-        snapshots: loop-time marks in seconds (the clock of ``train.max_seconds``, restarted
-            by a resume). When the loop time first reaches a mark, a checkpoint is written
-            and ``{"snapshot_s": mark, "iter": iteration, "elapsed": loop time}`` appended to
-            ``metrics.jsonl``; a mark the run does not reach is served by the final
-            checkpoint (and recorded the same way). Writing a snapshot is not counted in
-            ``elapsed`` nor against ``train.max_seconds`` (on CUDA the queued work is waited
-            for first, and counted). Snapshot checkpoints are exempt from
-            ``train.keep_checkpoints``. The training itself is unchanged (resume stays
-            exact).
+        hooks: ``hook(iteration, model, scene, cfg) -> dict`` at each log step (model in
+            eval mode, no gradient); their numbers join that line of ``metrics.jsonl``, and
+            their time is not training time (`neus_l0.callbacks.HookCallback`).
+        snapshots: loop-time marks in seconds that get a checkpoint
+            (`neus_l0.callbacks.Snapshots`); the training itself is unchanged.
+        callbacks: more `neus_l0.callbacks.TrainingCallback`s, run after the loop's own.
 
     Returns:
         a `TrainResult`.
@@ -351,204 +541,74 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
         NeusL0Error: an existing run without `resume`, a NaN checkpoint, divergence, or
             a negative or non-finite snapshot mark.
     """
-    from tqdm import tqdm
+    try:
+        own = default_callbacks(cfg, progress, hooks, snapshots)
+    except ValueError as exc:
+        raise NeusL0Error(str(exc)) from None
+    if Path(run_dir).exists() and not Path(run_dir).is_dir():
+        raise NeusL0Error(f"{run_dir}: is a file, not a run folder (choose another --out)")
+    with RunLock(run_dir), StopOnSignal() as stop:
+        loop = build_loop(scene, cfg, Path(run_dir), torch.device(device), resume)
+        return _run_loop(loop, own + list(callbacks), stop_at, stop)
 
-    run_dir = Path(run_dir)
-    device = torch.device(device)
-    marks = sorted(float(m) for m in snapshots)
-    if not all(math.isfinite(m) and m >= 0 for m in marks):
-        raise NeusL0Error(f"snapshots {list(snapshots)}: marks must be finite seconds >= 0")
-    ckpt_state = None
-    if resume:
-        last = latest_checkpoint(run_dir)
-        if last is None:
-            raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
-        ckpt_state = load_checkpoint(last, map_location=device)
-    elif latest_checkpoint(run_dir) is not None:
-        raise NeusL0Error(f"{run_dir}: already holds checkpoints; pass --resume to continue "
-                          "or choose another --out")
-    _check_scene(scene, cfg)
-    scene = scene.to(device)
 
-    model = make_model(cfg, device)
-    optimizer = make_optimizer(model, cfg)
-    scaler = make_scaler(cfg, device)
-    occupancy = make_occupancy(cfg, device)
-    generator = torch.Generator(device=device)
-    generator.manual_seed(cfg.train.seed)
-    iteration = 0
-    rays = cfg.train.batch_size  # adapted at log steps under train.sample_budget
-    if ckpt_state is not None:
-        try:
-            model.load_state_dict(ckpt_state["model"])
-            optimizer.load_state_dict(ckpt_state["optimizer"])
-        except (RuntimeError, ValueError, KeyError) as exc:
-            raise NeusL0Error(f"{last}: does not fit the config's networks (resume with the "
-                              f"run's config.yaml): {str(exc).splitlines()[0]}") from None
-        _restore_rng(generator, ckpt_state["rng"])
-        if occupancy is not None and "occupancy" in ckpt_state:
-            occupancy.load_state_dict(ckpt_state["occupancy"])
-        elif occupancy is not None:  # a checkpoint from a run without the grid
-            occupancy.update(model.sdf.sdf, model.variance.inv_s())
-        if "scaler" in ckpt_state:
-            scaler.load_state_dict(ckpt_state["scaler"])
-        iteration = int(ckpt_state["iteration"])
-        rays = int(ckpt_state.get("batch_size", rays))
-        del ckpt_state
-
-    run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(run_dir / "config.yaml", dump_config(cfg))
-    atomic_write_json(run_dir / "run.json", {
-        "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
-        "n_views": scene.n_views, "height": scene.height, "width": scene.width,
-    })
-    metrics_path = run_dir / "metrics.jsonl"
-    _truncate_metrics(metrics_path, iteration)
-    protected = _snapshot_checkpoints(metrics_path) if marks else set()
-    taken: list[tuple[float, int, Path]] = []
-
-    def checkpoint() -> Path:
-        state = {
-            "iteration": iteration,
-            "batch_size": rays,
-            "model": model.state_dict(),
-            "optimizer": optimizer.state_dict(),
-            "rng": _rng_state(generator),
-            "config": to_dict(cfg),
-            "scale_mat": np.asarray(scene.scale_mat).tolist(),
-            "has_background": model.background is not None,
-        }
-        if occupancy is not None:
-            state["occupancy"] = occupancy.state_dict()
-        if scaler.is_enabled():
-            state["scaler"] = scaler.state_dict()
-        if not marks:
-            return save_checkpoint(checkpoint_path(run_dir, iteration), state,
-                                   keep=cfg.train.keep_checkpoints)
-        path = save_checkpoint(checkpoint_path(run_dir, iteration), state, keep=0)
-        _prune_checkpoints(run_dir, cfg.train.keep_checkpoints, protected | {path})
-        return path
-
-    def snapshot(elapsed: float, final: bool) -> None:
-        """Serve every pending mark up to `elapsed` (all of them when `final`)."""
-        nonlocal last_ckpt
-        path = checkpoint_path(run_dir, iteration)
-        protected.add(path)  # before writing, so that its own pruning keeps it
-        if last_ckpt != path:
-            last_ckpt = checkpoint()
-        with open(metrics_path, "a", encoding="utf-8") as f:
-            while len(taken) < len(marks) and (final or marks[len(taken)] <= elapsed):
-                mark = marks[len(taken)]
-                taken.append((mark, iteration, path))
-                f.write(json.dumps({"snapshot_s": mark, "iter": iteration,
-                                    "elapsed": elapsed}) + "\n")
-
-    def wait_for_device() -> None:
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-
+def _run_loop(loop: TrainLoop, cbs: list[TrainingCallback], stop_at: int | None,
+              stop: StopOnSignal) -> TrainResult:
+    """The loop itself: restore is done; step, log, validate / checkpoint, stop."""
+    cfg = loop.cfg
+    _write_run_files(loop)
     t = cfg.train
-    acc = torch.zeros(len(METRIC_NAMES), device=device)
-    acc_n = 0
-    last_metrics: dict = {}
-    last_ckpt = latest_checkpoint(run_dir) if resume else None
-    stopped_early = False
-    bar = tqdm(total=t.iters, initial=iteration, disable=not progress, dynamic_ncols=True,
-               desc="train")
-    # The budget (train.max_seconds) counts the loop: steps, logs, validation renders and
-    # checkpoints, not the setup above (loading, first-use imports inside torch).
-    start_time = time.monotonic()
-    log_t0, log_it0 = start_time, iteration
-    model.train()
-    while iteration < t.iters:
-        step = train_step(model, optimizer, scene, cfg, iteration, generator,
-                          occupancy=occupancy, scaler=scaler, batch_size=rays)
+    acc = torch.zeros(len(METRIC_NAMES), device=loop.device)
+    steps, stopped_early = 0, False
+    for cb in cbs:
+        cb.on_start(loop)
+    # The budget (train.max_seconds) counts the loop from here: steps, logs, validation
+    # renders and checkpoints, not the setup above.
+    loop.clock = Clock()
+    window = (0.0, loop.iteration)
+    loop.model.train()
+    while loop.iteration < t.iters:
+        # step
+        step = train_step(loop.model, loop.optimizer, loop.scene, cfg, loop.iteration,
+                          loop.generator, occupancy=loop.occupancy, scaler=loop.scaler,
+                          batch_size=loop.rays, setup=loop.setup)
         acc += step
-        acc_n += 1
-        iteration += 1
-        bar.update(1)
-        if iteration % t.log_every == 0 or iteration == t.iters:
-            # the loop's only host synchronisation: the means, and this step's samples
-            *values, step_samples = torch.cat([acc / acc_n, step[-1:]]).tolist()
-            now = time.monotonic()
-            last_metrics = dict(zip(METRIC_NAMES, values, strict=True))
-            last_metrics.update(rays=rays)
-            # depends only on this step, not on the window, so a resume stays exact
-            rays = next_batch_size(rays, step_samples, cfg)
-            last_metrics.update(iter=iteration, lr=optimizer.param_groups[0]["lr"],
-                                its_per_s=(iteration - log_it0) / max(now - log_t0, 1e-9),
-                                elapsed=now - start_time)
-            if not all(math.isfinite(v) for v in values):
-                raise NeusL0Error(f"{run_dir}: training diverged at iteration {iteration} "
-                                  f"(loss {last_metrics['loss']}); resume from the last "
-                                  "checkpoint with a lower train.lr")
-            if hooks:
-                hook_t0 = time.monotonic()
-                model.eval()
-                with torch.no_grad():
-                    for hook in hooks:
-                        last_metrics.update(hook(iteration, model, scene, cfg))
-                model.train()
-                hook_seconds = time.monotonic() - hook_t0
-                start_time += hook_seconds  # hooks do not count as training time
-                now += hook_seconds
-            with open(metrics_path, "a", encoding="utf-8") as f:
-                f.write(json.dumps(last_metrics) + "\n")
-            bar.set_postfix(loss=f"{values[0]:.4f}", psnr=f"{values[4]:.2f}",
-                            s=f"{1.0 / values[5]:.1f}",
-                            its=f"{last_metrics['its_per_s']:.1f}")
+        steps += 1
+        loop.iteration += 1
+        # log
+        if loop.iteration % t.log_every == 0 or loop.iteration == t.iters:
+            metrics = read_metrics(loop, acc, steps, step, window)
+            for cb in cbs:
+                cb.on_log(loop, metrics)
             acc.zero_()
-            acc_n = 0
-            log_t0, log_it0 = now, iteration
-        if t.val_every and iteration % t.val_every == 0:
-            view = (iteration // t.val_every) % scene.n_views
-            model.eval()
-            img = validation_image(model, scene, cfg, view, iteration, occupancy)
-            model.train()
-            _write_png(run_dir / "validation" / f"{iteration:07d}_v{view:03d}.png", img)
-        if t.save_every and iteration % t.save_every == 0:
-            last_ckpt = checkpoint()
-        if len(taken) < len(marks) and time.monotonic() - start_time >= marks[len(taken)]:
-            wait_for_device()  # the queued steps are training time
-            snap_t0 = time.monotonic()
-            snapshot(snap_t0 - start_time, final=False)
-            snap_seconds = time.monotonic() - snap_t0
-            start_time += snap_seconds  # snapshots do not count as training time either
-            log_t0 += snap_seconds
-        over_time = t.max_seconds and time.monotonic() - start_time > t.max_seconds
-        if (over_time or (stop_at is not None and iteration >= stop_at)) \
-                and iteration < t.iters:
+            steps, window = 0, (loop.clock.elapsed(), loop.iteration)
+        # validate, checkpoint, snapshots
+        for cb in cbs:
+            cb.after_step(loop)
+        # stop
+        over_time = t.max_seconds and loop.clock.elapsed() > t.max_seconds
+        if (over_time or stop.requested or (stop_at is not None and loop.iteration >= stop_at)) \
+                and loop.iteration < t.iters:
             stopped_early = True
             break
-    bar.close()
-    if len(taken) < len(marks):  # marks beyond the end: the final checkpoint serves them
-        wait_for_device()
-        snapshot(time.monotonic() - start_time, final=True)
-    if last_ckpt is None or last_ckpt != checkpoint_path(run_dir, iteration):
-        last_ckpt = checkpoint()
-    return TrainResult(run_dir, iteration, last_ckpt, last_metrics,
-                       time.monotonic() - start_time, stopped_early, taken)
+    for cb in cbs:
+        cb.on_end(loop)
+    if loop.last_checkpoint != checkpoint_path(loop.run_dir, loop.iteration):
+        loop.save()
+    snaps = next((cb.taken for cb in cbs if isinstance(cb, Snapshots)), [])
+    return TrainResult(loop.run_dir, loop.iteration, loop.last_checkpoint,
+                       _last_metrics(loop.run_dir), loop.clock.elapsed(), stopped_early, snaps,
+                       signal=stop.signal_name if stop.requested else None,
+                       exit_code=stop.exit_code)
 
 
-def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
-                       checkpoint: str | Path | None = None) -> tuple[NeuSModel, Config, dict]:
-    """The networks of a finished (or interrupted) run.
-
-    Returns:
-        model (eval mode), config, and the checkpoint dict without the heavy states
-        (``iteration``, ``scale_mat``, ...).
-
-    Raises:
-        NeusL0Error: no checkpoint, or an unusable one.
-    """
-    path = Path(checkpoint) if checkpoint else latest_checkpoint(run_dir)
-    if path is None:
-        raise NeusL0Error(f"{run_dir}: no checkpoints/ckpt_*.pt (train first)")
-    state = load_checkpoint(path, map_location=device)
-    cfg = config_from_dict(state["config"])
-    model = make_model(cfg, device)
-    model.load_state_dict(state["model"])
-    model.eval()
-    info = {k: v for k, v in state.items() if k not in ("model", "optimizer", "rng")}
-    info["path"] = path
-    return model, cfg, info
+def _last_metrics(run_dir: Path) -> dict:
+    """The newest regular line of ``metrics.jsonl`` (empty when none was logged)."""
+    path = run_dir / "metrics.jsonl"
+    if not path.exists():
+        return {}
+    for line in reversed(path.read_text(encoding="utf-8").splitlines()):
+        m = json.loads(line)
+        if "loss" in m:
+            return m
+    return {}

@@ -201,7 +201,7 @@ def test_cull_removes_parts_outside_the_masks_and_keeps_the_object(scene):
 
 
 def test_cull_rule_details(scene):
-    from neus_l0.evaluation._scene import read_masks, read_world_mats
+    from neus_l0.data.cameras import read_masks, read_world_mats
 
     proj = read_world_mats(scene)
     masks = [dilate_mask(m, 0) for m in read_masks(scene, len(proj))]
@@ -322,3 +322,29 @@ def test_synth_scene_gt_mesh_scores_zero_against_itself(tmp_path, capsys):
     assert report["accuracy"] < 0.01
     assert report["completeness"] < 0.01
     assert report["counts"]["pred_kept"] > 0.5 * report["counts"]["pred_in_box"]  # 8 views
+
+
+def test_score_mesh_spec_and_keyword_forms_agree(scene, tmp_path):
+    """`score_mesh(mesh, ScoreSpec(...))` == `score_mesh(mesh, **fields)`; the CLI's
+    defaults are `ScoreSpec`'s."""
+    import argparse
+
+    from neus_l0.commands import evaluate
+    from neus_l0.evaluation.score import ScoreSpec, score_mesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    path = tmp_path / "pred.ply"
+    mesh.export(path)
+    a = score_mesh(path, ScoreSpec(scene=scene, density=1.0), log=lambda _m: None)
+    b = score_mesh(path, ScoreSpec(scene=tmp_path), scene=scene, density=1.0,
+                   log=lambda _m: None)
+    for k in ("accuracy", "completeness", "overall", "counts", "settings"):
+        assert a[k] == b[k]
+    with pytest.raises(NeusL0Error, match="exactly one ground truth"):
+        score_mesh(path, ScoreSpec())
+    sub = argparse.ArgumentParser().add_subparsers()
+    args = evaluate.add_parser(sub, "eval").parse_args(["m.ply", "--scene", "s"])
+    defaults = ScoreSpec()
+    for field in ("density", "max_dist", "margin_low", "margin_high", "depth_tol", "seed",
+                  "workers", "cmap", "vmax", "cull_dilate"):
+        assert getattr(args, field) == getattr(defaults, field), field

@@ -29,11 +29,12 @@ def _write_results(root, rows):
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
     """A bench folder: the demo scene (6 views, 80x60) and two runs of 2 iterations each."""
+    from neus_l0.checkpoint import load_trained_model
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
     from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model, train
+    from neus_l0.train import train
 
     root = tmp_path_factory.mktemp("bench")
     scene_dir = root / "scenes" / "demo"
@@ -135,19 +136,15 @@ def test_raster_render_depth_agrees_with_gt_depth(bench):
     assert np.array_equal(np.isnan(r["shade"]), ~np.isfinite(r["depth"]))
 
 
-def test_zoom_camera_maps_the_box_onto_the_image():
-    from neus_l0.data.cameras import camera_z_depth
-    from neus_l0.figures.views import Camera, crop_box, zoom_camera
+def test_crop_box_spans_the_projected_feature():
+    from neus_l0.figures.views import Camera, crop_box
 
     K = np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]])
     cam = Camera(np.c_[K, K @ np.array([0.0, 0, 50])], 80, 60)
     box = crop_box(cam, np.array([1.0, -2.0, 0.0]), 3.0, margin=1.0)
     assert np.allclose(box[2] - box[0], 2 * 3.0 * 100 / 50)  # 2 radii at depth 50
-    z = zoom_camera(cam, box, 64)
-    # a point on the box's lower-right corner projects to the far corner of the zoomed image
-    corner = np.linalg.solve(K, np.array([box[2], box[3], 1.0])) * 50 - [0, 0, 50]
-    xy, _ = camera_z_depth(z.P, corner[None])
-    assert np.allclose(xy[0], [63.5, 63.5])
+    # centred on the feature's projection: (40 + 100 * 1 / 50, 30 - 100 * 2 / 50)
+    assert np.allclose(0.5 * (box[:2] + box[2:]), [42.0, 26.0])
 
 
 def test_exp_interpolation_is_a_density_through_the_nodes():

@@ -1,11 +1,14 @@
 """Rendering: sphere bounds, the up-sampling weights, every sampler on an analytic sphere."""
 
+import dataclasses
+
 import pytest
 import torch
 from torch import nn
 
 from neus_l0.config import ColorConfig, RenderConfig, VarianceConfig
 from neus_l0.fields import ColorNetwork, NeuSModel, SingleVariance, build_model
+from neus_l0.losses import eikonal
 from neus_l0.rendering import (
     SAMPLERS,
     coarse_z_vals,
@@ -194,9 +197,9 @@ def test_render_rays_gradients_and_background():
                       generator=g, create_graph=True)
     assert out["weights"].shape == (32, 32 + 8)
     assert out["gradients"].shape == (32, 32, 3)
-    for k, v in out.items():
-        assert torch.isfinite(v).all(), k
-    loss = out["color"].sum() + out["gradient_error"]
+    for f in dataclasses.fields(out):
+        assert torch.isfinite(getattr(out, f.name)).all(), f.name
+    loss = out["color"].sum() + eikonal(out.gradients, out.eikonal_mask)
     loss.backward()
     for name, p in model.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
@@ -281,33 +284,40 @@ def test_rays_that_cross_no_occupied_cell_do_no_sdf_work():
     # rays through the unit sphere that pass the r = 0.5 sphere at distance >= 0.8
     o = torch.tensor([[-3.0, 0.8, 0.0], [-3.0, 0.0, -0.85], [0.9, -3.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    model.sdf.points = 0
     out = render_rays(model, o, d, RenderConfig(), "l0", occupancy=grid, create_graph=True)
-    assert model.sdf.points == 0
     assert not out["active"].any()
     assert torch.equal(out["weight_sum"], torch.zeros(3, 1))
     assert torch.equal(out["color"], torch.zeros(3, 3))
-    assert out["gradient_error"] == 0
+    assert eikonal(out.gradients, out.eikonal_mask) == 0
     # mixed with hitting rays, only those are evaluated
     o2 = torch.cat([o, torch.tensor([[-3.0, 0.0, 0.0]])])
     d2 = torch.cat([d, torch.tensor([[1.0, 0.0, 0.0]])])
-    model.sdf.points = 0
     cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2)
     out = render_rays(model, o2, d2, cfg, "l0", occupancy=grid)
     assert out["active"].tolist() == [False, False, False, True]
+    # render_rays keeps every batch's shape (inactive rays are masked); render_image skips
+    # their networks: only the hitting ray is evaluated
     per_ray = 16 + 8 + 32  # coarse + one intermediate round + the final pass
+    model.sdf.points = 0
+    img = render_image(model, o2.reshape(2, 2, 3), d2.reshape(2, 2, 3), cfg, "l0",
+                       occupancy=grid)
     assert model.sdf.points == per_ray
+    assert torch.equal(img["weight_sum"].reshape(-1)[:3], torch.zeros(3))
+    model.sdf.points = 0
+    render_image(model, o.reshape(1, 3, 3), d.reshape(1, 3, 3), cfg, "l0", occupancy=grid)
+    assert model.sdf.points == 0
 
 
 def test_rays_missing_the_sphere_get_no_samples():
     model = counting_model()
     o = torch.tensor([[-3.0, 1.2, 0.0], [0.0, 0.0, 3.0], [-3.0, 0.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # miss, behind, hit
-    model.sdf.points = 0
     cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2,
                        cull_outside_sphere=True)
     out = render_rays(model, o, d, cfg, "l0")
     assert out["active"].tolist() == [False, False, True]
+    model.sdf.points = 0
+    render_image(model, o.reshape(1, 3, 3), d.reshape(1, 3, 3), cfg, "l0")
     assert model.sdf.points == 16 + 8 + 32
     assert torch.equal(out["weight_sum"][:2], torch.zeros(2, 1))
     assert out["weight_sum"][2] > 0.99

@@ -7,14 +7,19 @@ import numpy as np
 import pytest
 import torch
 
-from neus_l0.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
+from neus_l0.checkpoint import (
+    latest_checkpoint,
+    list_checkpoints,
+    load_checkpoint,
+    load_trained_model,
+)
 from neus_l0.config import load_config
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.rendering import SAMPLERS
 from neus_l0.schedule import cos_anneal_ratio, lr_factor
-from neus_l0.train import load_trained_model, train
+from neus_l0.train import train
 
 # A tiny frequency-encoded MLP on top of confs/demo.yaml (whose SDF is a hash grid since the
 # "Speed" work; the demo tests below run the hash grid itself).
@@ -280,10 +285,10 @@ def test_cli_train_then_mesh(scene, tmp_path, capsys):
     out = tmp_path / "m.ply"
     assert main(["mesh", str(run), "--resolution", "32", "--out", str(out), "--colors"]) == 0
     mesh = trimesh.load(out, force="mesh")
-    # the (nearly initial) SDF is a sphere of radius ~0.5 around the scene centre, in world
-    # units: scale 2, centre (1, -2, 0.5)
+    # the (nearly initial) SDF is a blob of radius ~0.5-0.75 around the scene centre, in
+    # world units: scale 2, centre (1, -2, 0.5) (in the normalised frame it would be 2.3 off)
     r = np.linalg.norm(mesh.vertices - scene.scale_mat[:3, 3], axis=1)
-    assert 0.5 < r.mean() < 1.5
+    assert 0.5 < r.mean() < 2.0
     assert "vertices" in capsys.readouterr().out
 
 

@@ -35,10 +35,11 @@ def train_and_mesh(scene_dir: Path, run_dir: Path, conf: str, overrides: list[st
                    max_seconds: float, resolution: int) -> dict:
     """Train on `scene_dir` into `run_dir` and extract ``run_dir/mesh.ply`` (scene's world)."""
     from neus_l0.atomic import atomic_write_json
+    from neus_l0.checkpoint import load_trained_model
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model, train
+    from neus_l0.train import train
 
     done = run_dir / "chain_run.json"
     if done.is_file():
@@ -110,6 +111,31 @@ def icp_to_truth(mesh_path: Path, true_dir: Path) -> tuple[Path, dict]:
                   "icp_mean_dist_after": cost}
 
 
+def score_meshes(meshes: dict[str, Path], true_dir: Path, out: Path,
+                 timings: dict[str, float]) -> dict[str, dict]:
+    """Chamfer of each mesh against the true scene, as is and after a rigid ICP onto it,
+    with a comparison picture per mesh (`timings` gets the seconds of each score)."""
+    import trimesh
+
+    from neus_l0.commands.demo import draw_comparison, score_demo_mesh
+
+    keys = ("accuracy", "completeness", "overall")
+    scores = {}
+    for name, path in meshes.items():
+        t0 = time.perf_counter()
+        rep = score_demo_mesh(path, true_dir)
+        scores[name] = {k: rep.get(k) for k in keys}
+        timings[f"{name}_score_s"] = time.perf_counter() - t0
+        draw_comparison(true_dir, trimesh.load(path, force="mesh", process=False),
+                        out / f"comparison_{name}.png", rep)
+        # Diagnostic: a rigid ICP of the mesh onto the ground truth separates what the
+        # frame alignment leaves over from the shape itself.
+        icp_path, icp_info = icp_to_truth(path, true_dir)
+        rep = score_demo_mesh(icp_path, true_dir)
+        scores[name]["after_rigid_icp"] = {**{k: rep.get(k) for k in keys}, **icp_info}
+    return scores
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", required=True)
@@ -128,7 +154,6 @@ def main() -> None:
 
     from neus_l0.atomic import atomic_write_json
     from neus_l0.cli import main as cli_main
-    from neus_l0.commands.demo import draw_comparison, score_demo_mesh
     from neus_l0.data.synthetic import make_scene
     from neus_l0.mesh import export_mesh
     from neus_l0.photos.compare import compare_to_truth
@@ -171,21 +196,7 @@ def main() -> None:
     meshes = {"true_cameras": out / "run_true_cameras" / "mesh.ply",
               "colmap_chain": chain_path}
 
-    scores = {}
-    for name, path in meshes.items():
-        t0 = time.perf_counter()
-        rep = score_demo_mesh(path, true_dir)
-        scores[name] = {k: rep.get(k) for k in ("accuracy", "completeness", "overall")}
-        timings[f"{name}_score_s"] = time.perf_counter() - t0
-        draw_comparison(true_dir, trimesh.load(path, force="mesh", process=False),
-                        out / f"comparison_{name}.png", rep)
-        # Diagnostic: a rigid ICP of the mesh onto the ground truth separates what the
-        # frame alignment leaves over from the shape itself.
-        icp_path, icp_info = icp_to_truth(path, true_dir)
-        rep = score_demo_mesh(icp_path, true_dir)
-        scores[name]["after_rigid_icp"] = {k: rep.get(k) for k in
-                                           ("accuracy", "completeness", "overall")}
-        scores[name]["after_rigid_icp"].update(icp_info)
+    scores = score_meshes(meshes, true_dir, out, timings)
 
     report = {
         "command": "python tools/photos_chain.py " + " ".join(

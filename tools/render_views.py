@@ -21,6 +21,7 @@ import trimesh
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from neus_l0.data.cameras import read_world_mats  # noqa: E402
 from neus_l0.preview import raster_render  # noqa: E402
 
 
@@ -32,13 +33,13 @@ def main() -> None:
     p.add_argument("--views", default="0,16,30", help="view indices, comma-separated")
     args = p.parse_args()
     mesh = trimesh.load(args.mesh, force="mesh")
-    cams = np.load(args.scene / "cameras_sphere.npz")
+    world_mats = read_world_mats(args.scene)  # (V, 3, 4)
     images = sorted((args.scene / "image").glob("*.png"))
     views = [int(v) for v in args.views.split(",")]
     fig, ax = plt.subplots(2, len(views), figsize=(5 * len(views), 8), squeeze=False)
     for j, v in enumerate(views):
         img = cv2.imread(str(images[v]))[..., ::-1]
-        shade = raster_render(mesh, cams[f"world_mat_{v}"], img.shape[1], img.shape[0])["shade"]
+        shade = raster_render(mesh, world_mats[v], img.shape[1], img.shape[0])["shade"]
         ax[0, j].imshow(img)
         ax[0, j].set_title(f"input view {v}")
         ax[1, j].imshow(np.nan_to_num(shade, nan=1.0), cmap="gray", vmin=0, vmax=1)

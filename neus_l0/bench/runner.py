@@ -264,9 +264,9 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
     """
     import numpy as np
 
+    from neus_l0.checkpoint import load_trained_model
     from neus_l0.errors import NeusL0Error
     from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model
 
     points = []
     seen = set()
@@ -326,9 +326,10 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
 
     from neus_l0.bench.holdout import split_views, subset_scene
     from neus_l0.bench.sample_distance import SampleDistanceHook, SurfaceDistance
+    from neus_l0.checkpoint import load_trained_model
     from neus_l0.data.scene import load_scene
     from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model, train
+    from neus_l0.train import train
 
     if spec.threads:
         torch.set_num_threads(spec.threads)

@@ -84,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from neus_l0.atomic import atomic_write_text
+    from neus_l0.commands._paths import check_output_dir
     from neus_l0.photos import sfm, sparse_io
     from neus_l0.photos.export import export_scene, find_masks
     from neus_l0.photos.preview import write_preview
@@ -91,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
 
     t_start = time.perf_counter()
     sphere_arg = _parse_sphere(args)
-    photo_dir, out = Path(args.photos), Path(args.out)
+    photo_dir, out = Path(args.photos), check_output_dir(args.out, "OUT")
     if args.sparse and (args.camera_model or args.max_features):
         raise NeusL0Error("--camera-model and --max-features apply to SfM, not to --sparse")
     if args.masks and not Path(args.masks).is_dir():

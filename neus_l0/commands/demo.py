@@ -66,32 +66,32 @@ def score_demo_mesh(mesh_path, scene_dir) -> dict:
     import numpy as np
     import trimesh
 
-    from neus_l0.evaluation.score import score_mesh
+    from neus_l0.evaluation.score import ScoreSpec, score_mesh
 
     gt = trimesh.load(scene_dir / "gt_mesh.ply", force="mesh")
     extent = float(np.ptp(np.asarray(gt.vertices), axis=0).max())
-    return score_mesh(mesh_path, scene=scene_dir, density=extent / 150.0,
-                      log=lambda msg: None)
+    return score_mesh(mesh_path, ScoreSpec(scene=scene_dir, density=extent / 150.0),
+                      log=lambda _msg: None)
 
 
 def run(args: argparse.Namespace) -> int:
     import json
     import time
-    from pathlib import Path
 
     import numpy as np
     import torch
 
     from neus_l0.atomic import atomic_write_json
-    from neus_l0.checkpoint import latest_checkpoint
-    from neus_l0.commands.train import pick_device
+    from neus_l0.checkpoint import latest_checkpoint, load_trained_model
+    from neus_l0.commands._paths import check_output_dir
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
+    from neus_l0.device import pick_device
     from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model, train
+    from neus_l0.train import train
 
-    out = Path(args.out)
+    out = check_output_dir(args.out, "--out")
     out.mkdir(parents=True, exist_ok=True)
     device = pick_device(args.device)
     threads = demo_threads(args.threads)
@@ -170,20 +170,17 @@ def draw_comparison(scene_dir, mesh, path, score: dict | None):
     from pathlib import Path
 
     import cv2
-    import numpy as np
     import trimesh
 
+    from neus_l0.data.cameras import read_world_mats, scale_projection
     from neus_l0.preview import side_by_side, splat_render
 
     scene_dir = Path(scene_dir)
-    cams = np.load(scene_dir / "cameras_sphere.npz")
     images = sorted((scene_dir / "image").glob("*.png"))
     img = cv2.imread(str(images[0]))[..., ::-1] / 255.0
     h, w = img.shape[:2]
     up = max(1, 300 // w)  # render the meshes at about 300 pixels wide
-    S = np.diag([up, up, 1.0])
-    S[:2, 2] = (up - 1) / 2.0  # pixel centres stay at integers after upscaling
-    P = S @ cams["world_mat_0"][:3, :4]
+    P = scale_projection(read_world_mats(scene_dir)[0], up)
     gt = trimesh.load(scene_dir / "gt_mesh.ply", force="mesh")
     gt_shade, _ = splat_render(gt, P, w * up, h * up)
     rec_shade, _ = splat_render(mesh, P, w * up, h * up)

@@ -53,14 +53,15 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 def run(args: argparse.Namespace) -> int:
     from neus_l0.atomic import atomic_write_json
-    from neus_l0.evaluation.score import score_mesh
+    from neus_l0.evaluation.score import ScoreSpec, score_mesh
 
-    report = score_mesh(
-        args.mesh, scene=args.scene, dtu_dir=args.dtu, scan=args.scan, cull=args.cull,
+    spec = ScoreSpec(
+        scene=args.scene, dtu_dir=args.dtu, scan=args.scan, cull=args.cull,
         cull_dilate=args.cull_dilate, error_maps=args.error_maps, vmax=args.vmax,
         cmap=args.cmap, density=args.density, max_dist=args.max_dist,
         margin_low=args.margin_low, margin_high=args.margin_high, depth_tol=args.depth_tol,
         seed=args.seed, workers=args.workers)
+    report = score_mesh(args.mesh, spec)
     out = args.json if args.json is not None else args.mesh.with_name(args.mesh.name + ".eval.json")
     atomic_write_json(out, report)
     print(f"eval: wrote {out}", file=sys.stderr, flush=True)

@@ -40,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
 
     import torch
 
+    from neus_l0.commands._paths import check_output_dir
     from neus_l0.errors import NeusL0Error
     from neus_l0.figures.make import make_figures, write_index
     from neus_l0.figures.runs import select_runs
@@ -49,11 +50,11 @@ def run(args: argparse.Namespace) -> int:
         raise NeusL0Error(f"--samplers {args.samplers!r}: give distinct sampler names")
     if args.width < 32 or args.crop < 32:
         raise NeusL0Error("--width and --crop must be at least 32 pixels")
-    bench, out = Path(args.bench), Path(args.out)
+    bench, out = Path(args.bench), check_output_dir(args.out, "--out")
     scene_dir, runs = select_runs(bench, samplers, args.scene, args.budget, args.seed)
     with torch.no_grad():
-        entries = make_figures(scene_dir, runs, out, args.width, args.crop, args.error_max,
-                               args.pit)
+        entries = make_figures(scene_dir, runs, out, overview_width=args.width,
+                               crop_size=args.crop, error_max=args.error_max, pit=args.pit)
     first = next(iter(runs.values()))
     command = (f"neus-l0 figures --bench {bench} --out {out} --scene {first.scene}"
                f" --budget {first.budget_s:g} --seed {first.seed}"

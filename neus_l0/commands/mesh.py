@@ -7,20 +7,74 @@ import argparse
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
     p = sub.add_parser(name, help="extract a mesh from a trained run",
-                       description="Marching cubes of the trained SDF, exported in world units.")
+                       description="Marching cubes of the trained SDF, exported in world units. "
+                                   "Optional clean-up through pymeshlab runs in this order: "
+                                   "--min-component, --close-holes, --smooth, --simplify.")
     p.add_argument("run", metavar="RUN", help="run folder written by `neus-l0 train`")
-    p.add_argument("--resolution", type=int, default=512, help="grid samples per axis (512)")
+    p.add_argument("--resolution", type=int, default=512,
+                   help="grid samples per axis (512); refused with the largest resolution "
+                        "that fits when the estimated memory exceeds what is available")
     p.add_argument("--out", default=None, help="output .ply or .obj (default RUN/mesh.ply)")
     p.add_argument("--clean", action=argparse.BooleanOptionalAction, default=True,
                    help="keep only the largest connected component (default on)")
     p.add_argument("--colors", action="store_true",
                    help="vertex colours from the colour network (view = -normal)")
+    p.add_argument("--texture", action="store_true",
+                   help="write OUT.obj with UVs (xatlas), OUT.mtl and an OUT.png texture "
+                        "baked from the colour network (view = -normal); needs --out *.obj; "
+                        "xatlas takes about 25 s per 50k faces on a 2-core CPU, so add "
+                        "--simplify for big meshes")
+    p.add_argument("--texture-size", type=int, default=1024, metavar="TEXELS",
+                   help="about how many texels a side the texture has (1024)")
+    p.add_argument("--simplify", type=int, default=None, metavar="FACES",
+                   help="quadric edge collapse to at most FACES faces (default: off)")
+    p.add_argument("--smooth", type=int, default=0, metavar="ITERS",
+                   help="Taubin smoothing iterations, no shrinking (default 0: off)")
+    p.add_argument("--min-component", type=float, default=0.0, metavar="FRAC",
+                   help="remove connected components whose bounding-box diagonal is below "
+                        "FRAC of the mesh's (e.g. 0.05; default 0: off; with --clean only the "
+                        "largest component is left anyway)")
+    p.add_argument("--close-holes", type=int, default=0, metavar="MAXEDGES",
+                   help="close holes with at most MAXEDGES boundary edges (e.g. 100; "
+                        "default 0: off)")
     p.add_argument("--method", default="auto", choices=["auto", "dense", "sparse"],
                    help="dense grid, or sparse (the SDF evaluated only in blocks near the "
                         "surface); auto: sparse above 128 samples per axis (default)")
-    p.add_argument("--checkpoint", default=None, help="a specific checkpoint (default newest)")
+    p.add_argument("--checkpoint", default=None,
+                   help="a specific checkpoint (default the newest that loads)")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"])
     return p
+
+
+def _check(args: argparse.Namespace):
+    """Validate the arguments before any work; return (out path, method, cleanup options)."""
+    import sys
+    from pathlib import Path
+
+    from neus_l0.commands._paths import check_output_file
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.mesh import SPARSE_ABOVE
+    from neus_l0.mesh_cleanup import CleanupOptions
+    from neus_l0.mesh_memory import plan_extraction
+
+    if args.resolution < 8:
+        raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
+    out = check_output_file(args.out if args.out else Path(args.run) / "mesh.ply", "--out")
+    if out.suffix.lower() not in (".ply", ".obj"):
+        raise NeusL0Error(f"--out {out}: unsupported mesh format (use .ply or .obj)")
+    if args.texture and out.suffix.lower() != ".obj":
+        raise NeusL0Error(f"--texture: --out {out} must end in .obj (written with .mtl, .png)")
+    if args.texture and not 64 <= args.texture_size <= 16384:
+        raise NeusL0Error(f"--texture-size {args.texture_size}: give 64 to 16384 texels")
+    options = CleanupOptions(args.simplify, args.smooth, args.min_component, args.close_holes)
+    options.check()
+    method = args.method
+    if method == "auto":
+        method = "sparse" if args.resolution > SPARSE_ABOVE else "dense"
+    method, note = plan_extraction(method, args.resolution)
+    if note:
+        print(f"neus-l0 mesh: {note}", file=sys.stderr)
+    return out, method, options
 
 
 def run(args: argparse.Namespace) -> int:
@@ -29,26 +83,43 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from neus_l0.commands.train import pick_device
-    from neus_l0.errors import NeusL0Error
-    from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import load_trained_model
+    from neus_l0.checkpoint import load_trained_model
+    from neus_l0.device import pick_device
+    from neus_l0.mesh import export_mesh, extract_mesh, from_world, vertex_colors
+    from neus_l0.mesh_cleanup import clean_up
 
-    if args.resolution < 8:
-        raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
+    out, method, options = _check(args)
     device = pick_device(args.device)
     t0 = time.monotonic()
     model, _, info = load_trained_model(args.run, device, args.checkpoint)
-    mesh = extract_mesh(model, np.asarray(info["scale_mat"]), resolution=args.resolution,
-                        clean=args.clean, colors=args.colors, device=device,
-                        method=args.method)
-    out = Path(args.out) if args.out else Path(args.run) / "mesh.ply"
-    export_mesh(mesh, out)
+    scale_mat = np.asarray(info["scale_mat"])
+    mesh = extract_mesh(model, scale_mat, resolution=args.resolution, clean=args.clean,
+                        device=device, method=method)
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "
           f"evaluations ({st['sdf_evals'] / st['dense_evals']:.1%} of the dense grid), "
           f"{st['seconds']:.1f} s")
+    if options.any():
+        n_before = len(mesh.faces)
+        mesh = clean_up(mesh, options)
+        print(f"clean-up: {n_before} -> {len(mesh.faces)} faces")
+    if args.texture:
+        from neus_l0.texture import bake_texture, network_colors, write_textured_obj
+
+        t_tex = time.monotonic()
+        tex = bake_texture(from_world(mesh.vertices, scale_mat), np.asarray(mesh.faces),
+                           network_colors(model, device), size=args.texture_size)
+        tex.vertices = np.asarray(mesh.vertices, np.float64)  # world units
+        paths = write_textured_obj(tex, out)
+        h, w = tex.image.shape[:2]
+        print(f"texture: {w}x{h} texels, {time.monotonic() - t_tex:.1f} s; "
+              f"{paths[1].name}, {paths[2].name}")
+    else:
+        if args.colors:
+            mesh.visual.vertex_colors = vertex_colors(model, from_world(mesh.vertices,
+                                                                        scale_mat), device)
+        export_mesh(mesh, out)
     print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, world units "
-          f"(checkpoint {info['path'].name}, iteration {info['iteration']}, "
+          f"(checkpoint {Path(info['path']).name}, iteration {info['iteration']}, "
           f"{time.monotonic() - t0:.1f} s)")
     return 0

@@ -27,8 +27,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 
 def run(args: argparse.Namespace) -> int:
+    from neus_l0.commands._paths import check_output_dir
     from neus_l0.data.synthetic import make_scene
 
+    check_output_dir(args.out, "OUT")
     out = make_scene(args.scene, args.out, views=args.views, width=args.width,
                      height=args.height, seed=args.seed, spp=args.spp,
                      progress=not args.no_progress)

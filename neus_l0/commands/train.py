@@ -28,27 +28,15 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     return p
 
 
-def pick_device(name: str | None) -> str:
-    """`name`, or cuda when available; cuda without a GPU is a user error."""
-    import torch
-
-    from neus_l0.errors import NeusL0Error
-
-    if name is None:
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise NeusL0Error("--device cuda: no CUDA device is available")
-    return name
-
-
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
 
+    from neus_l0.commands._paths import check_output_dir
     from neus_l0.config import load_config
     from neus_l0.data.scene import load_scene
+    from neus_l0.device import pick_device
     from neus_l0.train import train
 
-    run_dir = Path(args.out)
+    run_dir = check_output_dir(args.out, "--out")
     conf = run_dir / "config.yaml" if args.resume and (run_dir / "config.yaml").is_file() \
         else args.conf
     cfg = load_config(conf, args.overrides)
@@ -56,8 +44,14 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(args.data, downscale=cfg.data.downscale, device=device)
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
                    progress=not args.quiet)
+    if result.signal:
+        print(f"stopped by {result.signal} at iteration {result.iteration}; checkpoint "
+              f"{result.checkpoint} written; continue with: neus-l0 train {args.data} "
+              f"--out {run_dir} --resume")
+        return result.exit_code
     state = "stopped at the time budget" if result.stopped_early else "done"
     print(f"{state}: {result.iteration} iterations in {result.seconds:.0f} s; "
           f"checkpoint {result.checkpoint}")
-    print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/)")
+    print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/, "
+          f"TensorBoard events: tensorboard --logdir {run_dir})")
     return 0

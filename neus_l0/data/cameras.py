@@ -1,15 +1,31 @@
-"""Camera math: projection-matrix decomposition, look-at poses, a DTU-like camera cap.
+"""Cameras and frames: NeuS camera files, projections, camera-z depth, the world/normalised
+frame conversion, look-at poses and a DTU-like camera cap.
 
 Conventions (OpenCV / NeuS): camera x right, y down, z forward; a 3x4 projection
 ``P = K [R | t]`` maps homogeneous world points to homogeneous pixels; pixel (x, y) is
-centred on integer coordinates. Everything here is numpy float64 (cameras are few; precision
-matters more than speed).
+centred on integer coordinates. The *normalised* frame puts the object's bounding sphere
+on the unit sphere: ``x_world = scale_mat[:3, :3] @ x_norm + scale_mat[:3, 3]``.
+Everything here is numpy float64 (cameras are few; precision matters more than speed).
+
+The light readers (`read_world_mats`, `read_masks`, `read_indexed`) read what evaluation and
+figures need from a NeuS-format folder without torch; `neus_l0.data.scene.load_scene` is the
+training loader (images, downscaling, poses in the normalised frame).
 """
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import cv2
 import numpy as np
+
+from neus_l0.errors import NeusL0Error
+
+#: Camera files of a NeuS-format folder, in order of preference (IDR's legacy name last).
+CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
+
+_WORLD_MAT = re.compile(r"^world_mat_(\d+)$")
 
 
 def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -126,6 +142,26 @@ def sphere_scale_mat(center: np.ndarray, radius: float) -> np.ndarray:
     return s
 
 
+def depth_projection(world_mats: np.ndarray) -> np.ndarray:
+    """Scale projections so that their third row gives camera-z depth.
+
+    ``P_n = P / norm(P[2, :3])`` with the sign of det(P[:, :3]) (1 where it is 0), so that
+    points in front of the camera have positive depth (``P = K [R | t]`` with K's diagonal
+    positive has det > 0). Applying it twice changes nothing.
+
+    Args:
+        world_mats: (..., 3, 4) or (..., 4, 4) projections world -> pixels.
+
+    Returns:
+        (..., 3, 4) float64 ``P_n``.
+    """
+    P = np.asarray(world_mats, dtype=np.float64)[..., :3, :4]
+    sign = np.sign(np.linalg.det(P[..., :3]))
+    sign = np.where(sign == 0, 1.0, sign)
+    norm = np.linalg.norm(P[..., 2, :3], axis=-1)
+    return P * (sign / norm)[..., None, None]
+
+
 def camera_z_depth(world_mat: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates and camera-z depth (world units) of world points.
 
@@ -134,14 +170,194 @@ def camera_z_depth(world_mat: np.ndarray, points: np.ndarray) -> tuple[np.ndarra
         points: (N, 3) world points.
 
     Returns:
-        xy: (N, 2) pixel coordinates (pixel centres at integers).
+        xy: (N, 2) pixel coordinates (pixel centres at integers; not finite where z = 0).
         z: (N,) depth along the optical axis, positive in front of the camera
-            (``(P_n @ [X, 1])[2]`` with ``P_n = P / norm(P[2, :3])``, sign fixed by det).
+            (``(P_n @ [X, 1])[2]`` with ``P_n`` from `depth_projection`).
     """
-    P = np.asarray(world_mat, dtype=np.float64)[:3, :4]
-    P = P / np.linalg.norm(P[2, :3]) * np.sign(np.linalg.det(P[:, :3]))
-    h = points @ P[:, :3].T + P[:, 3]
+    P = depth_projection(world_mat)
+    h = np.asarray(points, dtype=np.float64) @ P[:, :3].T + P[:, 3]  # (N, 3)
     z = h[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         xy = h[:, :2] / z[:, None]
     return xy, z
+
+
+def pixel_indices(world_mat: np.ndarray, points: np.ndarray, height: int | None = None,
+                  width: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixel (column, row) each world point falls in, and its camera-z depth.
+
+    Args:
+        world_mat: (4, 4) or (3, 4) projection, world -> pixels.
+        points: (N, 3) world points.
+        height, width: the image size; when given, pixels outside [0, W) x [0, H) count as
+            missed.
+
+    Returns:
+        col: (N,) int64 ``rint(x)``; row: (N,) int64 ``rint(y)``; both -1 where the point
+            is not in front of the camera (z <= 0) or, with a size, not inside the image.
+        z: (N,) camera-z depth (`camera_z_depth`).
+    """
+    xy, z = camera_z_depth(world_mat, points)
+    front = z > 0
+    big = 2.0**40  # avoids int overflow for points next to the camera plane
+    pix = np.full((len(z), 2), -1, dtype=np.int64)
+    pix[front] = np.rint(np.clip(xy[front], -big, big)).astype(np.int64)
+    col, row = pix[:, 0], pix[:, 1]
+    if height is not None and width is not None:
+        out = (col < 0) | (col >= width) | (row < 0) | (row >= height)
+        col[out] = -1
+        row[out] = -1
+    return col, row, z
+
+
+def scale_projection(world_mat: np.ndarray, factor: float) -> np.ndarray:
+    """The same camera at `factor` times the resolution, pixel centres kept at integers.
+
+    Pixel (x, y) becomes ``factor * (x, y) + (factor - 1) / 2``: new pixel centres split
+    each old pixel into factor x factor ones (for an integer factor).
+
+    Args:
+        world_mat: (3, 4) or (4, 4) projection, world -> pixels.
+        factor: resolution factor (> 0).
+
+    Returns:
+        (3, 4) float64 projection.
+    """
+    S = np.diag([factor, factor, 1.0])
+    S[:2, 2] = (factor - 1.0) / 2.0
+    return S @ np.asarray(world_mat, dtype=np.float64)[:3, :4]
+
+
+def to_world(points: np.ndarray, scale_mat: np.ndarray) -> np.ndarray:
+    """Normalised-frame points to world units: ``scale_mat[:3, :3] @ x + scale_mat[:3, 3]``.
+
+    Args:
+        points: (..., 3) normalised-frame points.
+        scale_mat: (4, 4) normalised -> world.
+
+    Returns:
+        (..., 3) float64 world points.
+    """
+    S = np.asarray(scale_mat, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ S[:3, :3].T + S[:3, 3]
+
+
+def to_normalised(points_world: np.ndarray, scale_mat: np.ndarray) -> np.ndarray:
+    """World points to the normalised frame (the inverse of `to_world`).
+
+    Args:
+        points_world: (..., 3) world points.
+        scale_mat: (4, 4) normalised -> world.
+
+    Returns:
+        (..., 3) float64 normalised-frame points.
+    """
+    S = np.asarray(scale_mat, dtype=np.float64)
+    x = np.asarray(points_world, dtype=np.float64) - S[:3, 3]
+    return np.linalg.solve(S[:3, :3], x.reshape(-1, 3).T).T.reshape(x.shape)
+
+
+def world_scale(scale_mat: np.ndarray) -> float:
+    """World units per normalised unit: ``|det(scale_mat[:3, :3])|^(1/3)``.
+
+    NeuS's scale_mat scales uniformly, so distances along a ray (and SDF values) convert by
+    this one factor; directions are the same in both frames.
+    """
+    return float(abs(np.linalg.det(np.asarray(scale_mat, dtype=np.float64)[:3, :3]))
+                 ** (1.0 / 3.0))
+
+
+def camera_file(scene_dir: str | Path) -> Path:
+    """The camera file of a NeuS-format folder (`CAMERA_FILES`, first found).
+
+    Raises:
+        NeusL0Error: neither file exists.
+    """
+    root = Path(scene_dir)
+    for name in CAMERA_FILES:
+        if (root / name).is_file():
+            return root / name
+    raise NeusL0Error(f"{root / CAMERA_FILES[0]}: file not found")
+
+
+def read_indexed(path: Path, pattern: re.Pattern, dtype: type, what: str) -> dict:
+    """Arrays stored as ``name_i`` keys of an npz file, checked to be numbered 0..n-1.
+
+    Args:
+        path: the .npz file (must exist).
+        pattern: regex whose group 1 is the index i.
+        dtype: NumPy dtype of the returned arrays.
+        what: the key family's name for error messages (e.g. ``world_mat_i``).
+
+    Returns:
+        {i: array} for i in 0..n-1.
+
+    Raises:
+        NeusL0Error: unreadable file, no matching keys, or gaps in the numbering.
+    """
+    try:
+        with np.load(path) as data:
+            arrays = {int(m.group(1)): np.asarray(data[k], dtype=dtype)
+                      for k in data.files if (m := pattern.match(k))}
+    except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise NeusL0Error(f"{path}: cannot read ({msg})") from None
+    if not arrays:
+        raise NeusL0Error(f"{path}: no {what} keys")
+    n = len(arrays)
+    if sorted(arrays) != list(range(n)):
+        raise NeusL0Error(f"{path}: {what} indices are not 0..{n - 1}")
+    return arrays
+
+
+def read_world_mats(scene_dir: str | Path) -> np.ndarray:
+    """Projections world -> pixels of every view of a NeuS-format folder, in index order.
+
+    Args:
+        scene_dir: folder with `cameras_sphere.npz` (or legacy `cameras.npz`).
+
+    Returns:
+        (V, 3, 4) float64: `world_mat_i[:3, :4]` for i = 0 .. V-1.
+
+    Raises:
+        NeusL0Error: missing/unreadable file, no `world_mat_i`, gaps or bad shapes.
+    """
+    path = camera_file(scene_dir)
+    mats = read_indexed(path, _WORLD_MAT, np.float64, "world_mat_i")
+    out = np.empty((len(mats), 3, 4))
+    for i in range(len(mats)):
+        m = mats[i]
+        if m.shape not in ((4, 4), (3, 4)) or not np.isfinite(m).all():
+            raise NeusL0Error(f"{path}: world_mat_{i} must be a finite 3x4 or 4x4 matrix")
+        out[i] = m[:3, :4]
+    return out
+
+
+def read_masks(scene_dir: str | Path, n_views: int | None = None) -> list[np.ndarray]:
+    """Foreground masks `mask/*.png` in sorted name order (> 127 = foreground).
+
+    Args:
+        scene_dir: scene folder.
+        n_views: expected number of masks (checked when given).
+
+    Returns:
+        n_views (H, W) bool arrays.
+
+    Raises:
+        NeusL0Error: no mask folder/files, unreadable image, or a count mismatch.
+    """
+    folder = Path(scene_dir) / "mask"
+    files = sorted(folder.glob("*.png"))
+    if not files:
+        raise NeusL0Error(f"{folder}: no mask/*.png files")
+    if n_views is not None and len(files) != n_views:
+        raise NeusL0Error(f"{folder}: {len(files)} masks for {n_views} cameras")
+    masks = []
+    for f in files:
+        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise NeusL0Error(f"{f}: cannot read image")
+        if img.ndim == 3:
+            img = img[..., :3].max(axis=-1)
+        masks.append(img > 127)
+    return masks

@@ -74,6 +74,36 @@ def random_rays(scene: Scene, n_rays: int, generator: torch.Generator | None = N
     gdev = generator.device if generator is not None else dev
     n, H, W = scene.n_views, scene.height, scene.width
     flat = torch.randint(0, n * H * W, (n_rays,), generator=generator, device=gdev).to(dev)
+    return rays_at(scene, flat)
+
+
+def random_pixel_rays(scene: Scene, n_rays: int, pixels: torch.Tensor,
+                      generator: torch.Generator | None = None) -> dict:
+    """Like `random_rays`, but drawn uniformly from a set of pixels only.
+
+    Args:
+        pixels: (P,) int64 flat indices ``view * H * W + y * W + x`` on the scene's device
+            (P > 0).
+
+    Returns:
+        the dict of `random_rays`.
+    """
+    dev = scene.device
+    gdev = generator.device if generator is not None else dev
+    pick = torch.randint(0, pixels.shape[0], (n_rays,), generator=generator, device=gdev)
+    return rays_at(scene, pixels[pick.to(dev)])
+
+
+def rays_at(scene: Scene, flat: torch.Tensor) -> dict:
+    """Rays and ground truth at flat pixel indices ``view * H * W + y * W + x``.
+
+    Args:
+        flat: (B,) int64 on the scene's device.
+
+    Returns:
+        the dict of `random_rays`.
+    """
+    H, W = scene.height, scene.width
     view = flat // (H * W)
     pix = flat % (H * W)
     y, x = pix // W, pix % W

@@ -19,6 +19,7 @@ block-averaged the same way and kept as soft coverage in [0, 1].
 from __future__ import annotations
 
 import dataclasses
+import sys
 from pathlib import Path
 
 import cv2
@@ -179,6 +180,23 @@ def _area_downscale(a: np.ndarray, s: int) -> np.ndarray:
     return cv2.resize(a, (w // s, h // s), interpolation=cv2.INTER_AREA)
 
 
+def _check_empty_masks(empty: list[Path], n_views: int, root: Path) -> None:
+    """Warn (one line on stderr) about empty masks; refuse a scene whose masks are all empty.
+
+    An empty mask is true data when the object has left a view's frame: every pixel of
+    that view is background, and training and culling treat it so.
+    """
+    if not empty:
+        return
+    if len(empty) == n_views:
+        raise SceneError(f"{root / 'mask'}: every mask is empty (no pixel > 127), e.g. "
+                         f"{empty[0]}")
+    names = ", ".join(p.name for p in empty[:8]) + (", ..." if len(empty) > 8 else "")
+    print(f"neus-l0: warning: {empty[0].parent}: {len(empty)} of {n_views} masks are empty "
+          f"(no pixel > 127): {names}; those views count as all background",
+          file=sys.stderr, flush=True)
+
+
 def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device = "cpu") -> Scene:
     """Load a NeuS-format scene.
 
@@ -213,12 +231,14 @@ def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
         img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
         images[i] = _area_downscale(img, s) if s > 1 else img
     if mask_paths is not None:
+        empty = []
         for i, p in enumerate(mask_paths):
             m = _read_image(p, (H, W))
             fg = (m.max(axis=-1) > 127).astype(np.float32)
             if not fg.any():
-                raise SceneError(f"{p}: mask is empty (no pixel > 127)")
+                empty.append(p)
             masks[i] = _area_downscale(fg, s) if s > 1 else fg
+        _check_empty_masks(empty, n, root)
 
     Ks, c2ws = [], []
     S = _downscale_matrix(s)
@@ -248,12 +268,13 @@ def validate_scene(root: str | Path) -> dict:
         A JSON-serialisable dict: ``root``, ``camera_file``, ``views``, ``width``,
         ``height``, ``has_masks``, ``mask_coverage`` (min/mean/max foreground fraction),
         ``sphere_center`` and ``sphere_radius`` (world units), ``camera_distance``
-        (min/mean/max in normalised units), ``focal`` (min/max, pixels), ``warnings``
-        (cameras inside the unit sphere or looking away from it).
+        (min/mean/max in normalised units), ``focal`` (min/max, pixels), ``empty_masks``
+        (views whose mask is empty), ``warnings`` (cameras inside the unit sphere or
+        looking away from it, empty masks).
     """
     root = Path(root)
     scene = load_scene(root)
-    _, _, cam_path = find_files(root)
+    _, mask_paths, cam_path = find_files(root)
     centres = scene.c2w[:, :3, 3].double().numpy()
     axes = scene.c2w[:, :3, 2].double().numpy()
     dist = np.linalg.norm(centres, axis=-1)
@@ -268,6 +289,11 @@ def validate_scene(root: str | Path) -> dict:
     if away.size:
         warnings.append(f"optical axis misses the unit sphere: views {away.tolist()}")
     cover = scene.masks.mean(dim=(1, 2)).numpy()
+    empty = np.nonzero(cover == 0)[0] if scene.has_masks else np.zeros(0, np.int64)
+    if empty.size:
+        names = [mask_paths[i].name for i in empty]
+        warnings.append(f"empty masks (all background in those views): views "
+                        f"{empty.tolist()} (mask/{', mask/'.join(names)})")
     sm = scene.scale_mat
     fx = scene.intrinsics[:, 0, 0].double().numpy()
     return {
@@ -285,5 +311,6 @@ def validate_scene(root: str | Path) -> dict:
                             "max": float(dist.max())},
         "axis_miss": {"max": float(miss.max())},
         "focal": {"min": float(fx.min()), "max": float(fx.max())},
+        "empty_masks": empty.tolist(),
         "warnings": warnings,
     }

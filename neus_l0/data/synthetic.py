@@ -14,8 +14,10 @@ Folder layout: see "A synthetic scene folder" in ``docs/ARCHITECTURE.md``.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -23,10 +25,10 @@ import torch
 
 from neus_l0.atomic import atomic_write, atomic_write_json
 from neus_l0.data.cameras import (
-    camera_z_depth,
     cap_centres,
     intrinsics_to_fit,
     look_at,
+    pixel_indices,
     projection_matrix,
     sphere_scale_mat,
 )
@@ -39,6 +41,11 @@ from neus_l0.data.shapes import (
     project_to_surface,
 )
 from neus_l0.errors import NeusL0Error
+
+if TYPE_CHECKING:
+    import trimesh
+
+    from neus_l0.data.meshes import MeshSurface
 
 #: Where built-in objects sit in the world frame (millimetres; deliberately off-origin).
 WORLD_OFFSET = (12.0, -8.0, 30.0)
@@ -112,11 +119,9 @@ def _visible(points: np.ndarray, world_mats: np.ndarray, depths: np.ndarray,
     seen = np.zeros(len(points), bool)
     f = K[0, 0]
     for P, D in zip(world_mats, depths, strict=True):
-        xy, z = camera_z_depth(P, points)
-        px = np.rint(xy).astype(np.int64, copy=False) if len(xy) else xy
-        inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)
-        idx = np.nonzero(inside & ~seen)[0]
-        d = D[px[idx, 1], px[idx, 0]]
+        col, row, z = pixel_indices(P, points, H, W)
+        idx = np.nonzero((col >= 0) & ~seen)[0]
+        d = D[row[idx], col[idx]]
         seen[idx] = z[idx] <= d + 2.0 * z[idx] / f + 1e-3 * z[idx]
     return seen
 
@@ -210,6 +215,56 @@ def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
                            point_spacing, azimuth_span, progress)
 
 
+@dataclasses.dataclass
+class _TrueSurface:
+    """The true surface of a scene in world units.
+
+    Attributes:
+        name: scene name; made: how it was made (for scene.json).
+        mesh: the ground-truth mesh; surface: what the renderer intersects.
+        sdf: the analytic SDF (None for a mesh file); voxel: its marching-cubes voxel.
+        features: features.json entries (world units).
+    """
+
+    name: str
+    made: str
+    mesh: trimesh.Trimesh
+    surface: SdfSurface | MeshSurface
+    sdf: Translated | None
+    voxel: float | None
+    features: list[dict]
+
+
+def _true_surface(scene: str | Path, gt_voxel: float | None) -> _TrueSurface:
+    """The built-in shape or the mesh file `scene`, placed at `WORLD_OFFSET` in world units."""
+    import trimesh
+
+    name, shape, mesh = _resolve(scene)
+    offset = np.array(WORLD_OFFSET)
+    if shape is not None:
+        sdf = Translated(shape.sdf, tuple(offset))
+        lo, hi = np.array(shape.bounds[0]) + offset, np.array(shape.bounds[1]) + offset
+        voxel = gt_voxel or GT_VOXEL.get(name, 1.0)
+        verts, faces = _marching_cubes_sdf(sdf, lo, hi, voxel)
+        verts = _exact_surface_points(sdf, verts, iters=12)
+        features = [dict(f, center=[float(c) for c in np.add(f["center"], offset)])
+                    for f in shape.features]
+        return _TrueSurface(name, f"built-in analytic SDF '{name}': {shape.description}",
+                            trimesh.Trimesh(verts, faces, process=False),
+                            SdfSurface(sdf, tuple(lo - 1.0), tuple(hi + 1.0)), sdf, voxel,
+                            features)
+    from neus_l0.data.meshes import MeshSurface
+
+    ext = mesh.bounds[1] - mesh.bounds[0]
+    k = 250.0 / float(ext.max())  # about 250 mm across, like the built-ins
+    mesh.apply_transform(trimesh.transformations.scale_matrix(k))
+    mesh.apply_translation(offset - mesh.bounds.mean(0))
+    made = f"mesh file {scene} scaled by {k:.6g} (y-up turned z-up), centred at {offset}"
+    return _TrueSurface(name, made, mesh,
+                        MeshSurface(np.asarray(mesh.vertices), np.asarray(mesh.faces)),
+                        None, None, [])
+
+
 def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spacing,
                 azimuth_span, progress) -> Path:
     import trimesh
@@ -220,33 +275,10 @@ def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spa
                           f"(got {views}, {width}x{height}, spp {spp})")
     t_start = time.time()
     out = Path(out)
-    name, shape, mesh = _resolve(scene)
-    offset = np.array(WORLD_OFFSET)
 
     # --- ground-truth surface in world units --------------------------------------------
-    if shape is not None:
-        sdf = Translated(shape.sdf, tuple(offset))
-        lo, hi = np.array(shape.bounds[0]) + offset, np.array(shape.bounds[1]) + offset
-        voxel = gt_voxel or GT_VOXEL.get(name, 1.0)
-        verts, faces = _marching_cubes_sdf(sdf, lo, hi, voxel)
-        verts = _exact_surface_points(sdf, verts, iters=12)
-        gt_mesh = trimesh.Trimesh(verts, faces, process=False)
-        features = [dict(f, center=[float(c) for c in np.add(f["center"], offset)])
-                    for f in shape.features]
-        surface = SdfSurface(sdf, tuple(lo - 1.0), tuple(hi + 1.0))
-        made = f"built-in analytic SDF '{name}': {shape.description}"
-    else:
-        from neus_l0.data.meshes import MeshSurface
-
-        ext = mesh.bounds[1] - mesh.bounds[0]
-        k = 250.0 / float(ext.max())  # about 250 mm across, like the built-ins
-        mesh.apply_transform(trimesh.transformations.scale_matrix(k))
-        mesh.apply_translation(offset - mesh.bounds.mean(0))
-        gt_mesh = mesh
-        features = []
-        surface = MeshSurface(np.asarray(mesh.vertices), np.asarray(mesh.faces))
-        sdf = None
-        made = f"mesh file {scene} scaled by {k:.6g} (y-up turned z-up), centred at {offset}"
+    truth = _true_surface(scene, gt_voxel)
+    name, gt_mesh, sdf, surface = truth.name, truth.mesh, truth.sdf, truth.surface
     verts = np.asarray(gt_mesh.vertices)
     centre = 0.5 * (verts.min(0) + verts.max(0))
     radius = SPHERE_MARGIN * float(np.linalg.norm(verts - centre, axis=1).max())
@@ -301,10 +333,10 @@ def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spa
     atomic_write(out / "gt_depth.npz", lambda p: _save_npz(p, depths, compressed=True))
     write_ply(out / "gt_mesh.ply", np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces))
     write_ply(out / "gt_points.ply", pts)
-    atomic_write_json(out / "features.json", {"features": features})
+    atomic_write_json(out / "features.json", {"features": truth.features})
     atomic_write_json(out / "scene.json", {
         "name": name, "seed": seed, "views": views, "width": width, "height": height,
-        "spp": spp, "source": str(scene), "made_by": made,
+        "spp": spp, "source": str(scene), "made_by": truth.made,
         "world_units": "millimetres (DTU-like)",
         "sphere": {"center": centre.tolist(), "radius": radius, "margin": SPHERE_MARGIN},
         "cameras": {"elevation_deg": [20.0, 70.0], "azimuth_span_deg": azimuth_span,
@@ -312,7 +344,7 @@ def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spa
                     "intrinsics": K.tolist(), "c2w_world": c2w.tolist()},
         "gt_points": {"count": int(len(pts)), "spacing": point_spacing},
         "gt_mesh": {"vertices": int(len(gt_mesh.vertices)), "faces": int(len(gt_mesh.faces)),
-                    "voxel": None if sdf is None else voxel},
+                    "voxel": truth.voxel},
         "seconds": round(time.time() - t_start, 2),
     })
     return out

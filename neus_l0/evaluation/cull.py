@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 
-from neus_l0.evaluation._scene import depth_projections, project, read_masks, read_world_mats
+from neus_l0.data.cameras import depth_projection, pixel_indices, read_masks, read_world_mats
 
 #: Dilation radius used for DTU's 1600 x 1200 masks (pixels).
 DTU_DILATE = 24
@@ -52,12 +52,12 @@ def mask_keep_vertices(vertices: np.ndarray, projections: np.ndarray,
         (V,) bool keep flags.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
-    p_n = depth_projections(projections)
+    p_n = depth_projection(projections)  # (n_views, 3, 4)
     keep = np.ones(len(vertices), dtype=bool)
     for p, m in zip(p_n, masks, strict=True):
         h, w = m.shape
-        col, row, _ = project(vertices, p)
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        col, row, _ = pixel_indices(p, vertices, h, w)
+        inside = col >= 0
         fg = np.zeros(len(vertices), dtype=bool)
         fg[inside] = m[row[inside], col[inside]]
         keep &= fg | ~inside

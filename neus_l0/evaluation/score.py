@@ -1,10 +1,14 @@
 """Score one mesh: the whole `neus-l0 eval` pipeline as a function returning the report.
 
-The protocol and the report's fields are documented in docs/EVALUATION.md.
+`score_mesh(mesh, ScoreSpec(...))` runs five stages: load the ground truth (first, so that
+a bad path fails before the slow part), load and optionally cull the mesh, sample and thin
+it, score it with the ground truth's protocol, and optionally write error maps. The
+protocol and the report's fields are documented in docs/EVALUATION.md.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -14,6 +18,193 @@ from pathlib import Path
 import numpy as np
 
 from neus_l0.errors import NeusL0Error
+from neus_l0.evaluation import dtu, synthetic
+from neus_l0.evaluation.chamfer import ChamferResult, nearest_distances
+from neus_l0.evaluation.cull import cull_mesh
+from neus_l0.evaluation.dtu import DTU_DENSITY, DTU_MARGIN_HIGH, DTU_MARGIN_LOW, DTU_MAX_DIST
+from neus_l0.evaluation.io import load_mesh, load_points
+from neus_l0.evaluation.pointcloud import sample_mesh, thin_points
+from neus_l0.evaluation.synthetic import DEPTH_TOL, SyntheticGT
+
+
+@dataclasses.dataclass(frozen=True)
+class ScoreSpec:
+    """How to score a mesh (the flags of `neus-l0 eval`; the defaults are DTU's).
+
+    Attributes:
+        scene: synthetic scene folder (gt_points.ply, gt_depth.npz, cameras_sphere.npz);
+            give this or `dtu_dir`.
+        dtu_dir: DTU evaluation folder (Points/stl, ObsMask); needs `scan`.
+        scan: DTU scan number.
+        cull: scene folder whose dilated masks cull the mesh first (NeuS's no-mask protocol).
+        cull_dilate: mask dilation in pixels (None: round(24 * width / 1600)).
+        error_maps: folder for accuracy.ply / completeness.ply coloured by distance (None:
+            no maps).
+        vmax: top of the error maps' colour scale (None: `max_dist`).
+        cmap: matplotlib colormap of the error maps.
+        density: sampling density and thinning radius (world units).
+        max_dist: distances >= this are left out of both means.
+        margin_low, margin_high: evaluation box margins below / above the GT box.
+        depth_tol: synthetic visibility tolerance (world units behind the true surface).
+        seed: seed of the thinning order.
+        workers: kd-tree threads (-1: all cores).
+    """
+
+    scene: str | Path | None = None
+    dtu_dir: str | Path | None = None
+    scan: int | None = None
+    cull: str | Path | None = None
+    cull_dilate: int | None = None
+    error_maps: str | Path | None = None
+    vmax: float | None = None
+    cmap: str = "jet"
+    density: float = DTU_DENSITY
+    max_dist: float = DTU_MAX_DIST
+    margin_low: float = DTU_MARGIN_LOW
+    margin_high: float = DTU_MARGIN_HIGH
+    depth_tol: float = DEPTH_TOL
+    seed: int = 0
+    workers: int = -1
+
+    def check(self) -> None:
+        """Raise `NeusL0Error` (one line, in the flags' words) on inconsistent settings."""
+        if (self.scene is None) == (self.dtu_dir is None):
+            raise NeusL0Error("give exactly one ground truth: a synthetic scene or a DTU folder")
+        if self.dtu_dir is not None and self.scan is None:
+            raise NeusL0Error("--dtu needs --scan (the DTU scan number)")
+        for name, value in (("density", self.density), ("max-dist", self.max_dist)):
+            if not value > 0:
+                raise NeusL0Error(f"--{name} must be positive")
+
+    @property
+    def margins(self) -> dict[str, float]:
+        """The box margins as keyword arguments of the protocols' functions."""
+        return {"margin_low": self.margin_low, "margin_high": self.margin_high}
+
+
+@dataclasses.dataclass
+class GroundTruth:
+    """The loaded ground truth of one protocol, with the protocol's scoring functions.
+
+    Attributes:
+        protocol: "dtu" or "synthetic".
+        points: (M, 3) float64 GT points (DTU: the STL points; synthetic: gt_points.ply).
+        info: what the report records about it (paths, scan).
+        obs, plane: DTU's ObsMask and (4,) plane (None for a synthetic scene).
+        scene_gt: the synthetic scene's ground truth (None for DTU).
+    """
+
+    protocol: str
+    points: np.ndarray
+    info: dict
+    obs: dtu.ObsMask | None = None
+    plane: np.ndarray | None = None
+    scene_gt: SyntheticGT | None = None
+
+    def evaluate(self, pred: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                 spec: ScoreSpec) -> tuple[ChamferResult, dict[str, np.ndarray]]:
+        """Chamfer of thinned points (N, 3) from the mesh (vertices (V, 3), faces (F, 3)).
+
+        Returns:
+            (result, masks) of `dtu.evaluate_dtu` / `synthetic.evaluate_synthetic`.
+        """
+        if self.protocol == "dtu":
+            return dtu.evaluate_dtu(pred, self.points, self.obs, self.plane, spec.max_dist,
+                                    workers=spec.workers, **spec.margins)
+        return synthetic.evaluate_synthetic(pred, self.scene_gt, spec.max_dist,
+                                            depth_tol=spec.depth_tol, workers=spec.workers,
+                                            pred_mesh=(vertices, faces), **spec.margins)
+
+    def scored(self, vertices: np.ndarray, spec: ScoreSpec) -> np.ndarray:
+        """(V,) bool: which of (V, 3) points the accuracy side would score."""
+        if self.protocol == "dtu":
+            return dtu.evaluation_region(vertices, self.obs, **spec.margins)[1]
+        return synthetic.evaluation_region(vertices, self.scene_gt, depth_tol=spec.depth_tol,
+                                           **spec.margins)[1]
+
+    def distance(self, vertices: np.ndarray, top: float, workers: int) -> np.ndarray:
+        """(V,) accuracy distance of (V, 3) points (`inf` at or above `top`)."""
+        if self.protocol == "dtu":
+            return nearest_distances(vertices, self.points, upper_bound=top, workers=workers)
+        # the same distance as accuracy (point-to-mesh with gt_mesh.ply)
+        return self.scene_gt.distance_to_gt(vertices, top, workers=workers)
+
+
+def load_ground_truth(spec: ScoreSpec) -> GroundTruth:
+    """Read the ground truth `spec` names (DTU files or a synthetic scene).
+
+    Raises:
+        NeusL0Error: a missing folder or a missing / malformed file.
+    """
+    if spec.dtu_dir is None:
+        gt = synthetic.load_synthetic_gt(spec.scene)
+        return GroundTruth("synthetic", gt.points, {"scene": str(spec.scene)}, scene_gt=gt)
+    if not Path(spec.dtu_dir).is_dir():
+        raise NeusL0Error(f"{spec.dtu_dir}: DTU evaluation folder not found")
+    paths = dtu.dtu_paths(spec.dtu_dir, spec.scan)
+    obs = dtu.load_obs_mask(paths["obs_mask"])
+    plane = dtu.load_plane(paths["plane"])
+    info = {"dtu_dir": str(spec.dtu_dir), "scan": spec.scan,
+            **{k: str(v) for k, v in paths.items()}}
+    return GroundTruth("dtu", load_points(paths["stl"]), info, obs=obs, plane=plane)
+
+
+def load_culled_mesh(mesh: Path, spec: ScoreSpec,
+                     counts: dict) -> tuple[np.ndarray, np.ndarray, dict | None]:
+    """Read the mesh and, with `spec.cull`, cull it with that scene's dilated masks.
+
+    Args:
+        mesh: mesh file; spec: the settings; counts: report counts, updated in place.
+
+    Returns:
+        vertices (V, 3), faces (F, 3) and the culling info (None without `cull`).
+    """
+    vertices, faces = load_mesh(mesh)
+    counts.update(mesh_vertices=len(vertices), mesh_faces=len(faces))
+    if spec.cull is None:
+        return vertices, faces, None
+    vertices, faces, cull_info = cull_mesh(vertices, faces, spec.cull, spec.cull_dilate)
+    if len(faces) == 0:
+        raise NeusL0Error(f"{mesh}: no faces left after culling with {spec.cull}/mask")
+    counts.update(culled_vertices=len(vertices), culled_faces=len(faces))
+    return vertices, faces, cull_info
+
+
+def sample_prediction(vertices: np.ndarray, faces: np.ndarray, spec: ScoreSpec,
+                      counts: dict) -> np.ndarray:
+    """DTU-style sampling of the mesh at `spec.density`, then thinning to that radius.
+
+    Returns:
+        (N, 3) thinned points; `counts` gets pred_sampled and pred_thinned.
+    """
+    sampled = sample_mesh(vertices, faces, spec.density)
+    counts["pred_sampled"] = len(sampled)
+    pred = thin_points(sampled, spec.density, seed=spec.seed)
+    counts["pred_thinned"] = len(pred)
+    return pred
+
+
+def write_maps(truth: GroundTruth, vertices: np.ndarray, faces: np.ndarray,
+               res: ChamferResult, masks: dict, spec: ScoreSpec) -> dict:
+    """Write accuracy.ply / completeness.ply into `spec.error_maps`.
+
+    Args:
+        truth: the ground truth; vertices (V, 3), faces (F, 3): the scored mesh;
+        res, masks: what `GroundTruth.evaluate` returned; spec: the settings.
+
+    Returns:
+        The report's ``error_maps`` entry: vmax, cmap and the paths written.
+    """
+    from neus_l0.evaluation.error_maps import write_error_maps
+
+    top = spec.vmax if spec.vmax is not None else spec.max_dist
+    v_scored = truth.scored(vertices, spec)
+    v_dist = truth.distance(vertices, top, spec.workers)
+    gt_dist = np.full(len(truth.points), np.inf)
+    gt_dist[masks["gt_used"]] = res.dist_gt
+    written = write_error_maps(spec.error_maps, vertices, faces, v_dist, v_scored,
+                               truth.points, gt_dist, masks["gt_used"], top, spec.cmap)
+    return {"vmax": top, "cmap": spec.cmap, **{k: str(v) for k, v in written.items()}}
 
 
 def _num(x: float | None) -> float | None:
@@ -24,127 +215,49 @@ def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def score_mesh(mesh: str | Path, *, scene: str | Path | None = None,
-               dtu_dir: str | Path | None = None, scan: int | None = None,
-               cull: str | Path | None = None, cull_dilate: int | None = None,
-               error_maps: str | Path | None = None, vmax: float | None = None,
-               cmap: str = "jet", density: float = 0.2, max_dist: float = 20.0,
-               margin_low: float = 60.0, margin_high: float = 120.0, depth_tol: float = 2.0,
-               seed: int = 0, workers: int = -1,
-               log: Callable[[str], None] = _stderr) -> dict:
+def score_mesh(mesh: str | Path, spec: ScoreSpec | None = None, *,
+               log: Callable[[str], None] = _stderr, **fields) -> dict:
     """Chamfer distance of a mesh (world units) to a synthetic scene's or DTU's ground truth.
 
     Args:
         mesh: predicted mesh file (PLY/OBJ), world units.
-        scene: synthetic scene folder (gt_points.ply, gt_depth.npz, cameras_sphere.npz).
-        dtu_dir, scan: DTU evaluation folder (Points/stl, ObsMask) and scan number.
-        cull: scene folder whose dilated masks cull the mesh first (NeuS's no-mask protocol).
-        cull_dilate: mask dilation in pixels (default: round(24 * width / 1600)).
-        error_maps: folder for accuracy.ply / completeness.ply coloured by distance.
-        vmax, cmap: error-map colour scale top (default max_dist) and matplotlib colormap.
-        density: sampling density and thinning radius. max_dist: distance cut-off.
-        margin_low, margin_high: evaluation box margins. depth_tol: synthetic visibility
-            tolerance. seed: thinning order. workers: kd-tree threads (-1: all cores).
+        spec: the settings (`ScoreSpec`); None: the defaults.
         log: progress messages.
+        **fields: `ScoreSpec` fields that replace the spec's (``scene=..., density=...``),
+            so that short calls stay short.
 
     Returns:
         The report (see docs/EVALUATION.md): accuracy, completeness, overall, counts,
         settings, ...
 
     Raises:
-        NeusL0Error: bad arguments or unreadable / malformed files.
+        NeusL0Error: bad settings or unreadable / malformed files.
     """
     from neus_l0 import __version__
-    from neus_l0.evaluation import dtu, synthetic
-    from neus_l0.evaluation.chamfer import nearest_distances
-    from neus_l0.evaluation.io import load_mesh, load_points
-    from neus_l0.evaluation.pointcloud import sample_mesh, thin_points
 
+    spec = dataclasses.replace(spec or ScoreSpec(), **fields)
+    spec.check()
     mesh = Path(mesh)
-    if (scene is None) == (dtu_dir is None):
-        raise NeusL0Error("give exactly one ground truth: a synthetic scene or a DTU folder")
-    if dtu_dir is not None and scan is None:
-        raise NeusL0Error("--dtu needs --scan (the DTU scan number)")
-    for name, value in (("density", density), ("max-dist", max_dist)):
-        if not value > 0:
-            raise NeusL0Error(f"--{name} must be positive")
     t0 = time.perf_counter()
-
-    # Ground truth first, so that a bad GT path fails before the slow part.
-    if dtu_dir is not None:
-        if not Path(dtu_dir).is_dir():
-            raise NeusL0Error(f"{dtu_dir}: DTU evaluation folder not found")
-        paths = dtu.dtu_paths(dtu_dir, scan)
-        obs = dtu.load_obs_mask(paths["obs_mask"])
-        plane = dtu.load_plane(paths["plane"])
-        gt_points = load_points(paths["stl"])
-        protocol = "dtu"
-        gt_info = {"dtu_dir": str(dtu_dir), "scan": scan,
-                   **{k: str(v) for k, v in paths.items()}}
-    else:
-        gt = synthetic.load_synthetic_gt(scene)
-        gt_points = gt.points
-        protocol = "synthetic"
-        gt_info = {"scene": str(scene)}
-
-    vertices, faces = load_mesh(mesh)
-    counts = {"mesh_vertices": len(vertices), "mesh_faces": len(faces)}
-    cull_info = None
-    if cull is not None:
-        from neus_l0.evaluation.cull import cull_mesh
-
-        vertices, faces, cull_info = cull_mesh(vertices, faces, cull, cull_dilate)
-        if len(faces) == 0:
-            raise NeusL0Error(f"{mesh}: no faces left after culling with {cull}/mask")
-        counts.update(culled_vertices=len(vertices), culled_faces=len(faces))
-
-    sampled = sample_mesh(vertices, faces, density)
-    counts["pred_sampled"] = len(sampled)
-    pred = thin_points(sampled, density, seed=seed)
-    del sampled
-    counts["pred_thinned"] = len(pred)
+    truth = load_ground_truth(spec)  # first: a bad GT path fails before the slow part
+    counts: dict = {}
+    vertices, faces, cull_info = load_culled_mesh(mesh, spec, counts)
+    pred = sample_prediction(vertices, faces, spec, counts)
     log(f"eval: {counts['pred_sampled']} points sampled, {len(pred)} after thinning "
         f"({time.perf_counter() - t0:.1f} s)")
-
-    margins = dict(margin_low=margin_low, margin_high=margin_high)
-    if protocol == "dtu":
-        res, masks = dtu.evaluate_dtu(pred, gt_points, obs, plane, max_dist,
-                                      workers=workers, **margins)
-    else:
-        res, masks = synthetic.evaluate_synthetic(pred, gt, max_dist, depth_tol=depth_tol,
-                                                  workers=workers,
-                                                  pred_mesh=(vertices, faces), **margins)
+    res, masks = truth.evaluate(pred, vertices, faces, spec)
     counts.update(res.counts)
-
-    maps = None
-    if error_maps is not None:
-        from neus_l0.evaluation.error_maps import write_error_maps
-
-        top = vmax if vmax is not None else max_dist
-        if protocol == "dtu":
-            _, v_scored = dtu.evaluation_region(vertices, obs, **margins)
-        else:
-            _, v_scored = synthetic.evaluation_region(vertices, gt, depth_tol=depth_tol,
-                                                      **margins)
-        if protocol == "dtu":
-            v_dist = nearest_distances(vertices, gt_points, upper_bound=top, workers=workers)
-        else:  # the same distance as accuracy (point-to-mesh with gt_mesh.ply)
-            v_dist = gt.distance_to_gt(vertices, top, workers=workers)
-        gt_dist = np.full(len(gt_points), np.inf)
-        gt_dist[masks["gt_used"]] = res.dist_gt
-        written = write_error_maps(error_maps, vertices, faces, v_dist, v_scored,
-                                   gt_points, gt_dist, masks["gt_used"], top, cmap)
-        maps = {"vmax": top, "cmap": cmap, **{k: str(v) for k, v in written.items()}}
-
-    settings = {"protocol": protocol, "density": density, "thin_radius": density,
-                "max_dist": max_dist, "margin_low": margin_low, "margin_high": margin_high,
-                "seed": seed, "distance": res.distance, "cull": cull_info}
-    if protocol == "synthetic":
-        settings["depth_tol"] = depth_tol
+    maps = None if spec.error_maps is None else write_maps(truth, vertices, faces, res,
+                                                           masks, spec)
+    settings = {"protocol": truth.protocol, "density": spec.density,
+                "thin_radius": spec.density, "max_dist": spec.max_dist, **spec.margins,
+                "seed": spec.seed, "distance": res.distance, "cull": cull_info}
+    if truth.protocol == "synthetic":
+        settings["depth_tol"] = spec.depth_tol
     return {
-        "protocol": protocol,
+        "protocol": truth.protocol,
         "mesh": str(mesh),
-        "gt": gt_info,
+        "gt": truth.info,
         "accuracy": _num(res.accuracy),
         "completeness": _num(res.completeness),
         "overall": _num(res.overall),

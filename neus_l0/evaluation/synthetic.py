@@ -6,14 +6,14 @@ surface), `gt_points.ply` (points on the true surface that some camera sees), `g
 `inf` on misses) and `cameras_sphere.npz` (`world_mat_i`).
 
 A predicted point p is *observed* by view i when, with P_n the depth-normalised projection
-(`_scene.depth_projections`), z = (P_n [p, 1])_3 > 0, its pixel (rint(x), rint(y)) lies
-inside the image, and z <= D_i(row, col) + depth_tol, where D_i(row, col) is `inf` where
-`depth_i` is `inf` (the ray misses the object: nothing hides the point) and otherwise the
-largest finite `depth_i` in the 3x3 window around the pixel (so that a point between pixel
-centres on a slanted surface is not hidden by the discretisation). The region mirrors
-DTU: the box is [min(gt) - margin_low, max(gt) + margin_high); accuracy scores the
-predicted points in the box and observed by at least one view; completeness scores all GT
-points.
+(`neus_l0.data.cameras.depth_projection`), z = (P_n [p, 1])_3 > 0, its pixel
+(rint(x), rint(y)) lies inside the image, and z <= D_i(row, col) + depth_tol, where
+D_i(row, col) is `inf` where `depth_i` is `inf` (the ray misses the object: nothing hides
+the point) and otherwise the largest finite `depth_i` in the 3x3 window around the pixel
+(so that a point between pixel centres on a slanted surface is not hidden by the
+discretisation). The region mirrors DTU: the box is [min(gt) - margin_low, max(gt) +
+margin_high); accuracy scores the predicted points in the box and observed by at least one
+view; completeness scores all GT points.
 
 Distances are point-to-mesh (`surface.MeshDistance`, exact point-to-triangle): accuracy
 measures each kept predicted point to `gt_mesh.ply`, completeness each GT point to the
@@ -33,13 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neus_l0.data.cameras import depth_projection, pixel_indices, read_indexed, read_world_mats
 from neus_l0.errors import NeusL0Error
-from neus_l0.evaluation._scene import (
-    depth_projections,
-    project,
-    read_indexed,
-    read_world_mats,
-)
 from neus_l0.evaluation.chamfer import (
     ChamferResult,
     chamfer_from_distances,
@@ -140,7 +135,7 @@ def observed(points: np.ndarray, projections: np.ndarray, depths: list[np.ndarra
         (N,) bool.
     """
     points = np.asarray(points, dtype=np.float64)
-    p_n = depth_projections(projections)
+    p_n = depth_projection(projections)  # (V, 3, 4)
     dmax = [_max_finite_3x3(d) for d in depths]
     out = np.zeros(len(points), dtype=bool)
     for s in range(0, len(points), chunk):
@@ -149,8 +144,8 @@ def observed(points: np.ndarray, projections: np.ndarray, depths: list[np.ndarra
             if len(idx) == 0:
                 break
             h, w = dmax[v].shape
-            col, row, z = project(points[idx], p_n[v])
-            inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+            col, row, z = pixel_indices(p_n[v], points[idx], h, w)
+            inside = col >= 0
             seen = np.zeros(len(idx), dtype=bool)
             seen[inside] = z[inside] <= dmax[v][row[inside], col[inside]] + depth_tol
             out[idx[seen]] = True

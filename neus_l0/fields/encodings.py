@@ -4,6 +4,10 @@
 geometric initialisation keeps only those channels alive). Kinds: `identity`, `frequency`
 (NeRF's positional encoding) and `hashgrid` (Instant-NGP's multiresolution hash grid, in
 plain PyTorch so that autograd gives the SDF's gradient and its double backward).
+
+Every encoding also has `forward_jacobian(x)`, the output and its derivative with respect
+to the input in closed form (an ordinary differentiable tensor expression), which the SDF
+network's `analytic` gradient propagates through its MLP (no double backward).
 """
 
 from __future__ import annotations
@@ -24,6 +28,17 @@ class Encoding(nn.Module):
     out_dim: int
     raw_dims: int
 
+    def forward_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """x (N, in_dim) -> output (N, out_dim) and its Jacobian (N, in_dim, out_dim),
+        ``jac[n, j, k] = d out[n, k] / d x[n, j]``."""
+        raise NotImplementedError
+
+
+def _eye_jacobian(x: Tensor) -> Tensor:
+    """(N, d) -> the identity's Jacobian (N, d, d), a broadcast view (no copy)."""
+    n, d = x.shape
+    return torch.eye(d, dtype=x.dtype, device=x.device).expand(n, d, d)
+
 
 class IdentityEncoding(Encoding):
     """The input unchanged."""
@@ -35,6 +50,10 @@ class IdentityEncoding(Encoding):
     def forward(self, x: Tensor) -> Tensor:
         """x (..., in_dim) -> (..., in_dim)."""
         return x
+
+    def forward_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """x (N, in_dim) -> x and the identity (N, in_dim, in_dim)."""
+        return x, _eye_jacobian(x)
 
 
 class FrequencyEncoding(Encoding):
@@ -61,6 +80,24 @@ class FrequencyEncoding(Encoding):
             sc = torch.stack([torch.sin(xf), torch.cos(xf)], dim=-2)  # (..., L, 2, in_dim)
             parts.append(sc.flatten(-3))
         return torch.cat(parts, dim=-1)
+
+    def forward_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """x (N, in_dim) -> output (N, out_dim) and Jacobian (N, in_dim, out_dim).
+
+        d sin(f x_i) / d x_j = f cos(f x_i) [i = j], d cos(f x_i) / d x_j = -f sin(f x_i) [i = j].
+        """
+        n, d = x.shape
+        vals = [x] if self.include_input else []
+        jacs = [_eye_jacobian(x)] if self.include_input else []
+        if self.n_freqs:
+            xf = x[:, None, :] * self.freqs[:, None]  # (N, L, d)
+            sin, cos = torch.sin(xf), torch.cos(xf)
+            vals.append(torch.stack([sin, cos], dim=-2).flatten(1))  # (N, L * 2 * d)
+            f = self.freqs[:, None]  # (L, 1)
+            dsc = torch.stack([cos * f, -sin * f], dim=-2)  # (N, L, 2, d): d/dx_i of channel i
+            eye = torch.eye(d, dtype=x.dtype, device=x.device)[:, None, None, :]  # (d,1,1,d)
+            jacs.append((dsc[:, None] * eye).flatten(2))  # (N, d, L * 2 * d)
+        return torch.cat(vals, dim=-1), torch.cat(jacs, dim=-1)
 
 
 #: Instant-NGP's hash primes (the first is 1, so consecutive x stay in one cache line).
@@ -147,10 +184,24 @@ class HashGridEncoding(Encoding):
         res = torch.tensor(self.resolutions, dtype=torch.float32)
         strides = torch.tensor([[1, n + 1, (n + 1) ** 2] for n in self.resolutions],
                                dtype=torch.int64)
+        # per level: the index multipliers (direct strides, or the hash primes)
+        mult = torch.tensor([[1, n + 1, (n + 1) ** 2] if lv < self.n_direct else HASH_PRIMES
+                             for lv, n in enumerate(self.resolutions)], dtype=torch.int64)
         self.register_buffer("res", res, persistent=False)  # (L,)
         self.register_buffer("strides", strides, persistent=False)  # (L, 3)
         self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.int64),
                              persistent=False)  # (L,)
+        self.register_buffer("level_mult", mult[:, None, :], persistent=False)  # (L, 1, 3)
+        self.register_buffer("level_direct", (torch.arange(n_levels) < self.n_direct)[:, None],
+                             persistent=False)  # (L, 1) bool
+        self.register_buffer("level", torch.arange(n_levels), persistent=False)  # (L,)
+        # x -> pos = (x / bound) * res / 2 + res / 2 (then clamped to [0, res]), per level
+        self.register_buffer("half_res", (res * 0.5)[:, None], persistent=False)  # (L, 1)
+        self.register_buffer("pos_max", res[:, None].clone(), persistent=False)  # (L, 1)
+        self.register_buffer("cell_max", (res - 1)[:, None], persistent=False)  # (L, 1)
+        self.register_buffer("pos_min", torch.zeros(n_levels, 1), persistent=False)
+        self.register_buffer("level_scale", torch.full((n_levels, 1), float(lr_scale)),
+                             persistent=False)  # (L, 1) lr_scale
         corners = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.int64)
         self.register_buffer("corners", corners, persistent=False)  # (8, 3), x major
         self.register_buffer("steps", torch.zeros((), dtype=torch.int64))
@@ -162,8 +213,17 @@ class HashGridEncoding(Encoding):
         return torch.clamp(self.start_level + self.steps // self.update_steps,
                            max=self.n_levels)
 
+    def finest_active_resolution(self) -> Tensor:
+        """() float: cells per axis of the finest active level (a tensor, no host sync)."""
+        if self.start_level >= self.n_levels:
+            return self.res[-1]
+        return self.res[self.active_levels() - 1]
+
     def grid_indices(self, cell: Tensor) -> Tensor:
         """Table rows of the 8 corners of each point's cell, per level.
+
+        Directly indexed levels use ``x + y (N+1) + z (N+1)^2``, the others `spatial_hash`;
+        both come from one product with per-level multipliers (ops shared by all levels).
 
         Args:
             cell: (N, L, 3) int64 lower corner of the cell at each level.
@@ -171,50 +231,150 @@ class HashGridEncoding(Encoding):
         Returns:
             (N, L, 8) int64 rows of `table` (level offsets included).
         """
-        c = cell[:, :, None, :] + self.corners  # (N, L, 8, 3)
-        k = self.n_direct
-        parts = []
-        if k:
-            parts.append((c[:, :k] * self.strides[:k, None, :]).sum(-1))  # (N, k, 8)
-        if k < self.n_levels:
-            parts.append(spatial_hash(c[:, k:], self.table_size))  # (N, L - k, 8)
-        idx = torch.cat(parts, dim=1) if len(parts) > 1 else parts[0]
+        p = (cell[:, :, None, :] + self.corners) * self.level_mult  # (N, L, 8, 3)
+        if self.n_direct == self.n_levels:
+            idx = p.sum(-1)
+        else:
+            x, y, z = p.unbind(-1)
+            hashed = (x ^ y ^ z) & (self.table_size - 1)  # (N, L, 8)
+            idx = torch.where(self.level_direct, p.sum(-1), hashed) if self.n_direct else hashed
         return idx + self.offsets[:, None]
+
+    def _corners(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The cell of every point at every level and its corners' table entries.
+
+        Args:
+            x: (N, 3) points.
+
+        Returns:
+            raw (N, L, 3) the continuous grid position x res_l / (2 bound) + res_l / 2; pos
+            (N, L, 3) the same clamped to [0, res_l] (the box); frac (N, L, 3)
+            in [0, 1] the position in the cell (differentiable wrt x); v (N, L, 8, F) the
+            corners' table entries (as stored, i.e. without `lr_scale`).
+        """
+        half_res = self.half_res.to(x.dtype)  # exact: halves of integers
+        xb = x / self.bound if self.bound != 1.0 else x
+        raw = torch.addcmul(half_res, xb[:, None, :], half_res)  # (N, L, 3)
+        pos = torch.clamp(raw, self.pos_min.to(x.dtype), self.pos_max.to(x.dtype))
+        with torch.no_grad():
+            cell = torch.minimum(pos.floor(), self.cell_max.to(x.dtype))  # (N, L, 3)
+            idx = self.grid_indices(cell.long())  # (N, L, 8)
+        frac = pos - cell
+        v = self.table.index_select(0, idx.view(-1)).view(*idx.shape, self.n_features)
+        return raw, pos, frac, v
 
     def grid_features(self, x: Tensor) -> Tensor:
         """x (N, 3) -> interpolated features (N, L, F) of every level (inactive ones too)."""
-        u = ((x / self.bound + 1.0) * 0.5).clamp(0.0, 1.0)  # (N, 3) in the unit cube
-        pos = u[:, None, :] * self.res[:, None].to(u.dtype)  # (N, L, 3)
-        with torch.no_grad():
-            cell = torch.minimum(pos.floor(), self.res[:, None].to(u.dtype) - 1)  # (N, L, 3)
-            idx = self.grid_indices(cell.long())  # (N, L, 8)
-        f = (pos - cell)[..., None]  # (N, L, 3, 1) in [0, 1], differentiable wrt x
-        table = self.table * self.lr_scale if self.lr_scale != 1.0 else self.table
-        v = table.index_select(0, idx.reshape(-1)).view(*idx.shape, self.n_features)
-        # trilinear = three rounds of lerps over the corners (x major, then y, then z);
-        # `lerp` is one fused op (and so is its derivative), about 3x cheaper on the CPU than
-        # forming the 8 weights and a weighted sum, in the forward and both backwards
-        v = torch.lerp(v[:, :, :4], v[:, :, 4:], f[:, :, 0:1])  # (N, L, 4, F) over x
-        v = torch.lerp(v[:, :, :2], v[:, :, 2:], f[:, :, 1:2])  # (N, L, 2, F) over y
-        v = torch.lerp(v[:, :, :1], v[:, :, 1:], f[:, :, 2:3])  # (N, L, 1, F) over z
-        return v[:, :, 0]  # (N, L, F)
+        _, _, frac, v = self._corners(x)
+        feats = _trilinear(v, frac)
+        return feats * self.lr_scale if self.lr_scale != 1.0 else feats
+
+    def _level_weights(self, x: Tensor) -> Tensor | None:
+        """(L, 1) multipliers of the levels' features (lr_scale, 0 for inactive levels), or
+        None when all are 1; counts a training pass (see the class docstring)."""
+        if self.start_level >= self.n_levels:
+            return None if self.lr_scale == 1.0 else self.level_scale.to(x.dtype)
+        w = torch.where(self.level[:, None] < self.active_levels(),
+                        self.level_scale.to(x.dtype), 0.0)  # (L, 1)
+        if self.training and torch.is_grad_enabled():
+            self.steps += 1
+        return w
+
+    def _prefix(self, x: Tensor) -> list[Tensor]:
+        parts = [x] if self.raw_dims else []
+        if self.bands is not None:
+            parts.append(self.bands(x))
+        return parts
 
     def forward(self, x: Tensor) -> Tensor:
         """x (N, 3) -> (N, out_dim)."""
         lead = x.shape[:-1]
-        x = x.reshape(-1, 3)
-        feats = self.grid_features(x)  # (N, L, F)
-        if self.start_level < self.n_levels:
-            level = torch.arange(self.n_levels, device=x.device)
-            mask = (level < self.active_levels()).to(feats.dtype)  # (L,)
-            feats = feats * mask[:, None]
-            if self.training and torch.is_grad_enabled():
-                self.steps += 1
-        parts = [x] if self.raw_dims else []
+        x = x.reshape(-1, 3) if x.dim() != 2 else x
+        weights = self._level_weights(x)
+        _, _, frac, v = self._corners(x)
+        feats = _trilinear(v, frac)  # (N, L, F)
+        if weights is not None:
+            feats = feats * weights
+        out = torch.cat([*self._prefix(x), feats.flatten(1)], dim=-1)
+        return out.reshape(*lead, self.out_dim) if len(lead) != 1 else out
+
+    def forward_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """x (N, 3) -> output (N, out_dim) and its Jacobian (N, 3, out_dim) in closed form.
+
+        The trilinear weights' derivatives along each axis (differences of the corner
+        values, interpolated along the other two axes), times d pos / d x = res_l / (2 bound)
+        where x lies inside the grid's box (0 where the clamp holds it, as autograd says);
+        inactive levels have zero value and zero derivative.
+        """
+        weights = self._level_weights(x)
+        raw, pos, frac, v = self._corners(x)
+        feats, dfeats = _trilinear_and_derivative(v, frac)  # (N, L, F), (N, L, 3, F)
+        dpos = (raw == pos).to(x.dtype) * self.half_res.to(x.dtype)  # (N, L, 3)
+        if self.bound != 1.0:
+            dpos = dpos / self.bound
+        if weights is not None:
+            feats = feats * weights
+            dpos = dpos * weights
+        dfeats = (dfeats * dpos[..., None]).transpose(1, 2).flatten(2)  # (N, 3, L * F)
+        vals, jacs = [], []
+        if self.raw_dims:
+            vals.append(x)
+            jacs.append(_eye_jacobian(x))
         if self.bands is not None:
-            parts.append(self.bands(x))
-        parts.append(feats.flatten(1))
-        return torch.cat(parts, dim=-1).reshape(*lead, self.out_dim)
+            bv, bj = self.bands.forward_jacobian(x)
+            vals.append(bv)
+            jacs.append(bj)
+        return (torch.cat([*vals, feats.flatten(1)], dim=-1),
+                torch.cat([*jacs, dfeats], dim=-1))
+
+
+def _trilinear(v: Tensor, frac: Tensor) -> Tensor:
+    """Trilinear interpolation of the 8 corners (x major, then y, then z).
+
+    Three rounds of `lerp` (one fused op each, and so is its derivative: about 3x cheaper on
+    the CPU than forming the 8 weights and a weighted sum, in the forward and both backwards).
+
+    Args:
+        v: (N, L, 8, F) corner values; frac: (N, L, 3) position in the cell.
+
+    Returns:
+        (N, L, F).
+    """
+    n, lv, _, nf = v.shape
+    fx, fy, fz = frac[..., None, None].unbind(2)  # (N, L, 1, 1) each
+    lo, hi = v.view(n, lv, 2, 4, nf).unbind(2)
+    v = torch.lerp(lo, hi, fx)  # (N, L, 4, F) over x
+    lo, hi = v.view(n, lv, 2, 2, nf).unbind(2)
+    v = torch.lerp(lo, hi, fy)  # (N, L, 2, F) over y
+    lo, hi = v.unbind(2)
+    return torch.lerp(lo, hi, fz[:, :, 0])  # (N, L, F) over z
+
+
+def _trilinear_and_derivative(v: Tensor, frac: Tensor) -> tuple[Tensor, Tensor]:
+    """Trilinear interpolation and its derivative wrt the position in the cell.
+
+    Each round interpolates the values and the derivatives of the previous rounds along
+    its axis (``lo + f (hi - lo)``), and its own axis's derivative is ``hi - lo``.
+
+    Args:
+        v: (N, L, 8, F) corner values (x major, then y, then z); frac: (N, L, 3).
+
+    Returns:
+        value (N, L, F) and derivative (N, L, 3, F) along x, y, z.
+    """
+    n, lv, _, nf = v.shape
+    fx, fy, fz = frac[..., None, None].unbind(2)  # (N, L, 1, 1) each
+    lo, hi = v.view(n, lv, 2, 4, nf).unbind(2)
+    d = hi - lo  # (N, L, 4, F): d/dfx
+    a = torch.cat([torch.addcmul(lo, fx, d), d], dim=-1)  # (N, L, 4, 2F): value, d/dfx
+    lo, hi = a.view(n, lv, 2, 2, 2 * nf).unbind(2)
+    d = hi - lo
+    a = torch.cat([torch.addcmul(lo, fy, d), d[..., :nf]], dim=-1)  # (N, L, 2, 3F)
+    lo, hi = a.unbind(2)
+    d = hi - lo
+    a = torch.cat([torch.addcmul(lo, fz[:, :, 0], d), d[..., :nf]], dim=-1)  # (N, L, 4F)
+    a = a.view(n, lv, 4, nf)  # value, d/dfx, d/dfy, d/dfz
+    return a[:, :, 0], a[:, :, 1:]
 
 
 def build_encoding(cfg: EncodingConfig, in_dim: int) -> Encoding:

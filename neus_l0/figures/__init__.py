@@ -6,5 +6,6 @@
 - `render`: headless mesh renders (shaded and coloured by the distance to the true surface).
 - `compose`: the side-by-side PNGs of the meshes.
 - `ray_weights`: coarse weights and the two up-sampling densities along one ray into a pit.
-- `index`: `index.md`, one entry per figure.
+- `make`: `make_figures` (load the inputs, render the overview and the crops, write the mesh
+  figures and the ray figure) and `write_index` (`index.md`, one entry per figure).
 """

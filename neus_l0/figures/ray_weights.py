@@ -117,7 +117,7 @@ class RayProfile:
     camera).
 
     Attributes:
-        z: (N,) coarse samples; section_weights: (N-1,) NeuS's weights of [z_j, z_{j+1}].
+        t: (N,) coarse samples; section_weights: (N-1,) NeuS's weights of [t_j, t_{j+1}].
         hvs_pdf: (N-1,) HVS density on each section (integrates to 1).
         l0_t: (M,) L0 nodes; l0_w: (M,) blurred node weights; l0_x, l0_pdf: dense curve of
             the piecewise-exponential density (integrates to 1).
@@ -126,7 +126,7 @@ class RayProfile:
         near, far: the sphere bounds.
     """
 
-    z: np.ndarray
+    t: np.ndarray
     section_weights: np.ndarray
     hvs_pdf: np.ndarray
     l0_t: np.ndarray
@@ -172,6 +172,7 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         scale_mat: (4, 4) normalised -> world (uniform scale).
         sampler: the sampler the run trained with (its all-round fine samples are drawn).
     """
+    from neus_l0.data.cameras import to_normalised, world_scale
     from neus_l0.rendering import (
         coarse_z_vals,
         draw_fine_samples,
@@ -183,35 +184,35 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
     from neus_l0.sampling import maxblur
 
     r = cfg.render
-    s = float(scale_mat[0, 0])
-    o = torch.as_tensor((origin - scale_mat[:3, 3]) / s, dtype=torch.float32)[None]
-    d = torch.as_tensor(direction, dtype=torch.float32)[None]
+    s = world_scale(scale_mat)  # world units per normalised unit along the ray
+    o = torch.as_tensor(to_normalised(origin, scale_mat), dtype=torch.float32)[None]  # (1, 3)
+    d = torch.as_tensor(direction, dtype=torch.float32)[None]  # (1, 3): same in both frames
     with torch.no_grad():
         near, far = near_far_from_sphere(o, d)  # (1, 1)
-        z = coarse_z_vals(near, far, r.n_samples, perturb=False)  # (1, N)
-        pts = o[:, None] + d[:, None] * z[..., None]  # (1, N, 3)
+        t = coarse_z_vals(near, far, r.n_samples, perturb=False)  # (1, N)
+        pts = o[:, None] + d[:, None] * t[..., None]  # (1, N, 3)
         sdf = model.sdf.sdf(pts.reshape(-1, 3)).reshape(1, -1)
-        w = upsample_section_weights(z, sdf, pts.norm(dim=-1), 64.0)  # (1, N-1)
+        w = upsample_section_weights(t, sdf, pts.norm(dim=-1), 64.0)  # (1, N-1)
         per_round = max(1, r.n_importance // max(1, r.up_sample_steps))
-        fine = {name: draw_fine_samples(z, w, per_round, name, r.point_weights,
+        fine = {name: draw_fine_samples(t, w, per_round, name, r.point_weights,
                                         r.weights_as_density, r.l0_pad)[0] * s
                 for name in ("hvs", "l0")}
-        t, pw = section_to_point_weights(z, w, r.point_weights, r.weights_as_density)
+        nodes, pw = section_to_point_weights(t, w, r.point_weights, r.weights_as_density)
         wb = maxblur(pw, pad=r.l0_pad)[0].double()  # (M,)
-        x, pdf = exp_interpolation(t[0].double(), wb)
-        D = (z[0, 1:] - z[0, :-1]).double()
+        x, pdf = exp_interpolation(nodes[0].double(), wb)
+        D = (t[0, 1:] - t[0, :-1]).double()
         hvs = w[0].double() / (w[0].double().sum() * D)
         fine_all = render_rays(model, o, d, r, sampler)["z_fine"][0] if r.n_importance else \
             torch.zeros(0)
         # the model's surface: first sign change of its SDF on a dense grid
-        zz = torch.linspace(float(near), float(far), 4000)[None]
-        dense = model.sdf.sdf((o[:, None] + d[:, None] * zz[..., None]).reshape(-1, 3))
+        t_dense = torch.linspace(float(near), float(far), 4000)[None]  # (1, 4000)
+        dense = model.sdf.sdf((o[:, None] + d[:, None] * t_dense[..., None]).reshape(-1, 3))
         dense = dense.reshape(-1)  # (4000,)
         neg = torch.nonzero(dense <= 0)
-        surf = float(zz[0, neg[0, 0]]) * s if len(neg) else float("nan")
+        surf = float(t_dense[0, neg[0, 0]]) * s if len(neg) else float("nan")
     return RayProfile(
-        z=z[0].numpy() * s, section_weights=w[0].numpy(), hvs_pdf=hvs.numpy() / s,
-        l0_t=t[0].numpy() * s, l0_w=wb.numpy(), l0_x=x.numpy() * s, l0_pdf=pdf.numpy() / s,
+        t=t[0].numpy() * s, section_weights=w[0].numpy(), hvs_pdf=hvs.numpy() / s,
+        l0_t=nodes[0].numpy() * s, l0_w=wb.numpy(), l0_x=x.numpy() * s, l0_pdf=pdf.numpy() / s,
         fine={k: v.numpy() for k, v in fine.items()}, fine_all=fine_all.numpy() * s,
         model_surface=surf, near=float(near) * s, far=float(far) * s)
 
@@ -241,7 +242,7 @@ def plot_ray_weights(path: str | Path, ray: PitRay, profiles: list[tuple[str, st
         for j, ax in enumerate(axes[i]):
             lo, hi = (p.near, p.far) if j == 0 else (lo_z, hi_z)
             ax2 = ax.twinx()
-            mids = 0.5 * (p.z[1:] + p.z[:-1])
+            mids = 0.5 * (p.t[1:] + p.t[:-1])
             ax2.vlines(mids, 0, p.section_weights, color="0.55", lw=3, alpha=0.55,
                        label="coarse section weights (right axis)")
             wtop = max(1e-6, float(p.section_weights.max())) * 1.1
@@ -249,7 +250,7 @@ def plot_ray_weights(path: str | Path, ray: PitRay, profiles: list[tuple[str, st
             ax2.set_yticks([t for t in ax2.get_yticks() if 0 <= t <= wtop])
             ax2.set_ylabel("coarse weight", fontsize=8, color="0.4")
             ax2.tick_params(labelsize=7, colors="0.4")
-            ax.stairs(p.hvs_pdf, p.z, color=COLORS["hvs"], lw=1.5,
+            ax.stairs(p.hvs_pdf, p.t, color=COLORS["hvs"], lw=1.5,
                       label="HVS: piecewise-constant PDF of the weights")
             ax.plot(p.l0_x, p.l0_pdf, color=COLORS["l0"], lw=1.5,
                     label="L0: piecewise-exponential a(b/a)^s after maxblur")
@@ -292,12 +293,12 @@ def plot_ray_weights(path: str | Path, ray: PitRay, profiles: list[tuple[str, st
 def zoom_window(p: RayProfile, t_surface: float) -> tuple[float, float]:
     """A window holding the true surface, the model's surface and the central 96 % of the
     HVS density, with two coarse steps of margin (inside the ray's bounds)."""
-    step = float(np.mean(np.diff(p.z)))
-    cdf = np.cumsum(p.hvs_pdf * np.diff(p.z))
+    step = float(np.mean(np.diff(p.t)))
+    cdf = np.cumsum(p.hvs_pdf * np.diff(p.t))
     pts = [t_surface]
     if cdf[-1] > 0:
         cdf = cdf / cdf[-1]
-        pts += [p.z[1:][np.searchsorted(cdf, 0.02)], p.z[:-1][np.searchsorted(cdf, 0.98)]]
+        pts += [p.t[1:][np.searchsorted(cdf, 0.02)], p.t[:-1][np.searchsorted(cdf, 0.98)]]
     if np.isfinite(p.model_surface):
         pts.append(p.model_surface)
     lo, hi = min(pts) - 2 * step, max(pts) + 2 * step

@@ -13,7 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from neus_l0.data.cameras import camera_z_depth, decompose_projection, look_at
+from neus_l0.data.cameras import (
+    camera_z_depth,
+    decompose_projection,
+    look_at,
+    read_world_mats,
+    scale_projection,
+)
 from neus_l0.errors import NeusL0Error
 
 #: Half-width of a crop box, in feature radii.
@@ -39,9 +45,7 @@ class Camera:
 
     def scaled(self, factor: float) -> Camera:
         """The same view at `factor` times the resolution (pixel centres stay at integers)."""
-        S = np.diag([factor, factor, 1.0])
-        S[:2, 2] = (factor - 1.0) / 2.0
-        return Camera(S @ self.P, int(round(self.width * factor)),
+        return Camera(scale_projection(self.P, factor), int(round(self.width * factor)),
                       int(round(self.height * factor)))
 
 
@@ -65,11 +69,7 @@ def scene_cameras(scene_dir: str | Path) -> list[Camera]:
     """The cameras of a NeuS-format scene (``cameras_sphere.npz``; size from ``scene.json``
     or the first image)."""
     scene_dir = Path(scene_dir)
-    path = scene_dir / "cameras_sphere.npz"
-    if not path.is_file():
-        raise NeusL0Error(f"{path}: missing")
-    cams = np.load(path)
-    n = len([k for k in cams.files if k.startswith("world_mat_") and "inv" not in k])
+    world_mats = read_world_mats(scene_dir)  # (V, 3, 4)
     info = scene_dir / "scene.json"
     if info.is_file():
         meta = json.loads(info.read_text())
@@ -79,8 +79,7 @@ def scene_cameras(scene_dir: str | Path) -> list[Camera]:
 
         img = cv2.imread(str(sorted((scene_dir / "image").glob("*.png"))[0]))
         h, w = img.shape[:2]
-    return [Camera(np.asarray(cams[f"world_mat_{i}"], np.float64)[:3, :4], w, h)
-            for i in range(n)]
+    return [Camera(P, w, h) for P in world_mats]
 
 
 def crop_box(cam: Camera, center: np.ndarray, radius: float,
@@ -94,14 +93,6 @@ def crop_box(cam: Camera, center: np.ndarray, radius: float,
     half = margin * radius * K[0, 0] / max(float(z[0]), 1e-9)
     x, y = xy[0]
     return np.array([x - half, y - half, x + half, y + half])
-
-
-def zoom_camera(cam: Camera, box: np.ndarray, size: int) -> Camera:
-    """The camera whose `size` x `size` image shows the pixel box (x0, y0, x1, y1) of `cam`."""
-    x0, y0, x1, y1 = box
-    s = size / max(x1 - x0, y1 - y0)
-    A = np.array([[s, 0.0, -s * x0 - 0.5], [0.0, s, -s * y0 - 0.5], [0.0, 0.0, 1.0]])
-    return Camera(A @ cam.P, size, size)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -123,6 +123,73 @@ def _quiet_colmap() -> None:
     pycolmap.logging.stderrthreshold = 1
 
 
+def _extract(db: Path, photo_dir: str | Path, names: list[str], opts: SfmOptions) -> None:
+    """SIFT features of `names` into the database (one shared camera)."""
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = CAMERA_MODELS[opts.camera_model]
+    extract = pycolmap.FeatureExtractionOptions()
+    extract.sift.max_num_features = opts.max_features
+    extract.max_image_size = opts.max_size if opts.max_size > 0 else -1
+    extract.num_threads = opts.threads
+    pycolmap.extract_features(db, photo_dir, image_names=list(names),
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=extract, device=pycolmap.Device.cpu)
+
+
+def _match(db: Path, matcher: str, opts: SfmOptions) -> None:
+    """Match the features (exhaustive or sequential) and verify the two-view geometry."""
+    import pycolmap
+
+    match = pycolmap.FeatureMatchingOptions()
+    match.num_threads = opts.threads
+    verify = pycolmap.TwoViewGeometryOptions()
+    if opts.seed >= 0:
+        verify.ransac.random_seed = opts.seed
+    run = pycolmap.match_exhaustive if matcher == "exhaustive" else pycolmap.match_sequential
+    run(db, matching_options=match, verification_options=verify, device=pycolmap.Device.cpu)
+
+
+def _map(db: Path, photo_dir: str | Path, sparse: Path, n_photos: int, opts: SfmOptions,
+         progress: bool) -> dict:
+    """Incremental mapping into `sparse/<k>`, with a bar of the registered photos.
+
+    Returns:
+        pycolmap's {k: Reconstruction}.
+    """
+    import pycolmap
+
+    pipe = pycolmap.IncrementalPipelineOptions()
+    pipe.num_threads = opts.threads
+    pipe.min_model_size = MIN_REGISTERED
+    pipe.ba_refine_principal_point = opts.refine_principal_point
+    if opts.seed >= 0:
+        pipe.random_seed = opts.seed
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=n_photos, desc="registered", unit="img", leave=False)
+
+    def _tick() -> None:
+        if bar is not None:
+            bar.update(1)
+
+    def _init_pair() -> None:
+        if bar is not None:
+            bar.update(2)
+
+    sparse.mkdir(exist_ok=True)
+    try:
+        return pycolmap.incremental_mapping(db, photo_dir, sparse, options=pipe,
+                                            initial_image_pair_callback=_init_pair,
+                                            next_image_callback=_tick)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
 def run_sfm(photo_dir: str | Path, names: list[str], work_dir: str | Path,
             options: SfmOptions | None = None, log: Log = print,
             progress: bool = True) -> tuple[list[SparseModel], dict]:
@@ -164,63 +231,17 @@ def run_sfm(photo_dir: str | Path, names: list[str], work_dir: str | Path,
     log(f"[1/3] extracting SIFT features from {len(names)} photos "
         f"(camera model {opts.camera_model}, up to {opts.max_features} features"
         + (f", images at most {opts.max_size} px" if opts.max_size > 0 else "") + ")")
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = CAMERA_MODELS[opts.camera_model]
-    extract = pycolmap.FeatureExtractionOptions()
-    extract.sift.max_num_features = opts.max_features
-    extract.max_image_size = opts.max_size if opts.max_size > 0 else -1
-    extract.num_threads = opts.threads
-    pycolmap.extract_features(db, photo_dir, image_names=list(names),
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extract, device=pycolmap.Device.cpu)
+    _extract(db, photo_dir, names, opts)
     timings["extract"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     log(f"[2/3] matching features ({matcher})")
-    match = pycolmap.FeatureMatchingOptions()
-    match.num_threads = opts.threads
-    verify = pycolmap.TwoViewGeometryOptions()
-    if opts.seed >= 0:
-        verify.ransac.random_seed = opts.seed
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(db, matching_options=match, verification_options=verify,
-                                  device=pycolmap.Device.cpu)
-    else:
-        pycolmap.match_sequential(db, matching_options=match, verification_options=verify,
-                                  device=pycolmap.Device.cpu)
+    _match(db, matcher, opts)
     timings["match"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     log("[3/3] incremental mapping")
-    pipe = pycolmap.IncrementalPipelineOptions()
-    pipe.num_threads = opts.threads
-    pipe.min_model_size = MIN_REGISTERED
-    pipe.ba_refine_principal_point = opts.refine_principal_point
-    if opts.seed >= 0:
-        pipe.random_seed = opts.seed
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(names), desc="registered", unit="img", leave=False)
-
-    def _tick() -> None:
-        if bar is not None:
-            bar.update(1)
-
-    def _init_pair() -> None:
-        if bar is not None:
-            bar.update(2)
-
-    sparse = work / "sparse"
-    sparse.mkdir(exist_ok=True)
-    try:
-        recs = pycolmap.incremental_mapping(db, photo_dir, sparse, options=pipe,
-                                            initial_image_pair_callback=_init_pair,
-                                            next_image_callback=_tick)
-    finally:
-        if bar is not None:
-            bar.close()
+    recs = _map(db, photo_dir, work / "sparse", len(names), opts, progress)
     timings["map"] = time.perf_counter() - t0
     models = [from_reconstruction(r) for r in recs.values()]
     models.sort(key=lambda m: -m.n_views)

@@ -1,0 +1,238 @@
+"""The training loop's bookkeeping as callbacks at named points (nerfstudio's idea).
+
+`neus_l0.train.train` runs a short loop: restore, step, log, validate / checkpoint, stop.
+Everything else it does is one of these callbacks, each called at a named point of the
+loop with the loop's shared state (`neus_l0.train.TrainLoop`):
+
+* ``on_start(loop)``: once, before the first step;
+* ``on_log(loop, metrics)``: every ``train.log_every`` steps (and at the last), with the
+  metrics line being built; a callback may add numbers to it before `MetricsFile` writes
+  it (order matters: the loop calls callbacks in list order);
+* ``after_step(loop)``: after every step;
+* ``on_end(loop)``: once, after the last step (also after a stop by time, `stop_at` or a
+  signal), before the final checkpoint.
+
+The clock (`neus_l0.train.Clock`) counts training time; callbacks whose work must not count
+(training hooks, snapshot checkpoints) run inside ``loop.clock.paused()``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import torch
+
+from neus_l0.checkpoint import checkpoint_path
+
+if TYPE_CHECKING:
+    from neus_l0.train import TrainLoop
+
+#: A training hook: ``hook(iteration, model, scene, cfg) -> {name: number}``.
+Hook = Callable[..., dict]
+
+
+def step_check(iteration: int, every: int) -> bool:
+    """Whether a task due every `every` iterations runs at `iteration` (0: never)."""
+    return every > 0 and iteration % every == 0
+
+
+class TrainingCallback:
+    """Base class: override the points you need (all do nothing by default)."""
+
+    def on_start(self, loop: TrainLoop) -> None:
+        """Before the first step."""
+
+    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+        """At a log step, with the metrics line being built."""
+
+    def after_step(self, loop: TrainLoop) -> None:
+        """After every step."""
+
+    def on_end(self, loop: TrainLoop) -> None:
+        """After the last step, before the final checkpoint."""
+
+
+class HookCallback(TrainingCallback):
+    """Training hooks (``hook(iteration, model, scene, cfg) -> dict``) at log steps.
+
+    The model is in eval mode without gradient; the hooks' numbers join the metrics line,
+    and their time is not training time (the clock is paused).
+    """
+
+    def __init__(self, hooks: Sequence[Hook]) -> None:
+        self.hooks = list(hooks)
+
+    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+        if not self.hooks:
+            return
+        with loop.clock.paused(), loop.evaluating():
+            for hook in self.hooks:
+                metrics.update(hook(loop.iteration, loop.model, loop.scene, loop.cfg))
+
+
+class MetricsFile(TrainingCallback):
+    """Appends each metrics line to ``RUN/metrics.jsonl``."""
+
+    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+        with open(loop.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
+            f.write(json.dumps(metrics) + "\n")
+
+
+class ProgressBar(TrainingCallback):
+    """A tqdm bar with the loss, PSNR, s and iterations per second."""
+
+    def __init__(self, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self.bar = None
+
+    def on_start(self, loop: TrainLoop) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=loop.cfg.train.iters, initial=loop.iteration,
+                        disable=not self.enabled, dynamic_ncols=True, desc="train")
+
+    def after_step(self, loop: TrainLoop) -> None:
+        self.bar.update(1)
+
+    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+        self.bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}",
+                             s=f"{1.0 / metrics['s']:.1f}", its=f"{metrics['its_per_s']:.1f}")
+
+    def on_end(self, loop: TrainLoop) -> None:
+        self.bar.close()
+
+
+class Validation(TrainingCallback):
+    """Every ``train.val_every`` steps: ground truth | colour | normals of one view, as a
+    PNG in ``RUN/validation/`` (the views taken in turn); `sinks` also get the image."""
+
+    def __init__(self, sinks: Sequence[Callable[[int, str, object], None]] = ()) -> None:
+        self.sinks = list(sinks)
+
+    def after_step(self, loop: TrainLoop) -> None:
+        every = loop.cfg.train.val_every
+        if not step_check(loop.iteration, every):
+            return
+        from neus_l0.validation import validation_image, write_png
+
+        view = (loop.iteration // every) % loop.scene.n_views
+        with loop.evaluating():
+            img = validation_image(loop.model, loop.scene, loop.cfg, view, loop.iteration,
+                                   bounds=loop.bounds, sampler=loop.setup.sampler)
+        write_png(loop.run_dir / "validation" / f"{loop.iteration:07d}_v{view:03d}.png", img)
+        for sink in self.sinks:
+            sink(loop.iteration, f"validation/v{view:03d}", img)
+
+
+class Checkpoints(TrainingCallback):
+    """Every ``train.save_every`` steps, an atomic checkpoint."""
+
+    def after_step(self, loop: TrainLoop) -> None:
+        if step_check(loop.iteration, loop.cfg.train.save_every):
+            loop.save()
+
+
+class Snapshots(TrainingCallback):
+    """Checkpoints at loop-time marks (seconds of the training clock).
+
+    When the clock first reaches a mark, a checkpoint is written and ``{"snapshot_s": mark,
+    "iter": iteration, "elapsed": loop time}`` appended to ``metrics.jsonl``; marks the run
+    does not reach are served by the final checkpoint. Writing them is not training time
+    (the clock is paused; on CUDA the queued steps are waited for first, and counted), and
+    their checkpoints are exempt from ``train.keep_checkpoints``.
+    """
+
+    def __init__(self, marks: Sequence[float]) -> None:
+        self.marks = sorted(float(m) for m in marks)
+        if not all(math.isfinite(m) and m >= 0 for m in self.marks):
+            raise ValueError(f"snapshots {list(marks)}: marks must be finite seconds >= 0")
+        self.taken: list[tuple[float, int, Path]] = []
+
+    def on_start(self, loop: TrainLoop) -> None:
+        if self.marks:
+            loop.protected |= snapshot_checkpoints(loop.run_dir / "metrics.jsonl")
+            loop.protect_snapshots = True
+
+    def after_step(self, loop: TrainLoop) -> None:
+        if len(self.taken) < len(self.marks) and loop.clock.elapsed() >= self.marks[
+                len(self.taken)]:
+            loop.wait_for_device()
+            self._serve(loop, final=False)
+
+    def on_end(self, loop: TrainLoop) -> None:
+        if len(self.taken) < len(self.marks):
+            loop.wait_for_device()
+            self._serve(loop, final=True)
+
+    def _serve(self, loop: TrainLoop, final: bool) -> None:
+        """Serve every pending mark up to now (all of them when `final`)."""
+        elapsed = loop.clock.elapsed()
+        # the final checkpoint is written (and counted) with or without snapshots
+        with contextlib.nullcontext() if final else loop.clock.paused():
+            path = checkpoint_path(loop.run_dir, loop.iteration)
+            loop.protected.add(path)  # before writing, so that its own pruning keeps it
+            if loop.last_checkpoint != path:
+                loop.save()
+            with open(loop.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
+                while len(self.taken) < len(self.marks) and (
+                        final or self.marks[len(self.taken)] <= elapsed):
+                    mark = self.marks[len(self.taken)]
+                    self.taken.append((mark, loop.iteration, path))
+                    f.write(json.dumps({"snapshot_s": mark, "iter": loop.iteration,
+                                        "elapsed": elapsed}) + "\n")
+
+
+def snapshot_checkpoints(metrics_path: Path) -> set[Path]:
+    """Checkpoints of the snapshot lines already in ``metrics.jsonl`` (before a resume)."""
+    if not metrics_path.exists():
+        return set()
+    found = set()
+    for line in metrics_path.read_text(encoding="utf-8").splitlines():
+        try:
+            m = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if "snapshot_s" in m and "iter" in m:
+            found.add(checkpoint_path(metrics_path.parent, int(m["iter"])))
+    return found
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (CUDA); nothing on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+class TensorBoard(TrainingCallback):
+    """TensorBoard events in the run folder (``tensorboard --logdir RUN``): the losses,
+    s, PSNR, learning rate, samples per ray, iterations per second, validation images."""
+
+    SCALARS = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "lr", "its_per_s")
+
+    def __init__(self) -> None:
+        self.logger = None
+
+    def on_start(self, loop: TrainLoop) -> None:
+        from neus_l0.tensorboard_log import TensorBoardLogger
+
+        self.logger = TensorBoardLogger(loop.run_dir, purge_step=loop.iteration or None)
+
+    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+        values = {k: metrics[k] for k in self.SCALARS if k in metrics}
+        values["s"] = 1.0 / metrics["s"] if metrics.get("s") else float("nan")
+        rays = metrics.get("rays") or loop.rays
+        values["samples_per_ray"] = metrics["samples"] / max(rays, 1)
+        self.logger.scalars(loop.iteration, values)
+
+    def image(self, step: int, tag: str, rgb) -> None:
+        """A `Validation` sink."""
+        if self.logger is not None:
+            self.logger.image(step, tag, rgb)
+
+    def on_end(self, loop: TrainLoop) -> None:
+        self.logger.close()

@@ -1,0 +1,80 @@
+"""`train.compile`: the training step's render and loss through `torch.compile`.
+
+What is compiled is `neus_l0.train.render_and_loss` (rendering, the up-sampling draw, the
+networks with their SDF gradient, every loss term); AOT autograd compiles its backward
+with it, and the optimiser's update stays eager (fused Adam on CUDA). The step is written
+for it: fixed shapes, no host synchronisation, no generator inside (the random numbers
+are drawn before, `neus_l0.train.draw_step_inputs`), and the SDF gradient without double
+backward (``model.sdf.gradient`` `analytic` or `finite-difference`; `autograd` cannot be
+compiled, since AOT autograd does not support ``create_graph``).
+
+On CUDA the first choice is ``mode="reduce-overhead"`` (CUDA graphs); if compiling or the
+first step fails there, a one-line warning says so and the default mode is used; if that
+fails too, the step runs eagerly, again with one line. The compile time (the first step's)
+is reported once.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+
+import torch
+
+from neus_l0.errors import ConfigError
+
+
+def _warn(msg: str) -> None:
+    print(f"neus-l0: {msg}", file=sys.stderr, flush=True)
+
+
+class CompiledStep:
+    """A compiled `render_and_loss` with its fallbacks (see the module docstring).
+
+    Call it as `render_and_loss` is called. Attributes after the first call:
+    ``mode`` (the mode that works, or ``"eager"``) and ``compile_seconds``.
+    """
+
+    def __init__(self, fn: Callable, device: torch.device) -> None:
+        self.fn = fn
+        self.modes = ["reduce-overhead", "default"] if device.type == "cuda" else ["default"]
+        self.mode: str | None = None
+        self.compiled: Callable | None = None
+        self.compile_seconds: float | None = None
+
+    def __call__(self, *args, **kwargs):
+        if self.compiled is not None:
+            return self.compiled(*args, **kwargs)
+        t0 = time.monotonic()
+        for mode in self.modes:
+            candidate = torch.compile(self.fn, mode=mode, fullgraph=True, dynamic=False)
+            try:
+                out = candidate(*args, **kwargs)
+            except Exception as exc:  # noqa: BLE001 - any compiler failure falls back
+                reason = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else ""
+                _warn(f"torch.compile(mode={mode!r}) failed ({type(exc).__name__}: "
+                      f"{reason}); falling back")
+                continue
+            self.compiled, self.mode = candidate, mode
+            self.compile_seconds = time.monotonic() - t0
+            _warn(f"compiled the training step (mode={mode!r}) in "
+                  f"{self.compile_seconds:.1f} s")
+            return out
+        self.compiled, self.mode = self.fn, "eager"
+        _warn("train.compile: no mode compiled; the step runs eagerly")
+        return self.fn(*args, **kwargs)
+
+
+def compiled_step(fn: Callable, cfg, device: torch.device) -> CompiledStep | None:
+    """`CompiledStep(fn)` when ``train.compile`` is on, else None.
+
+    Raises:
+        ConfigError: ``train.compile`` with ``model.sdf.gradient=autograd``.
+    """
+    if not cfg.train.compile:
+        return None
+    if cfg.model.sdf.gradient == "autograd":
+        raise ConfigError("train.compile=true needs model.sdf.gradient=analytic or "
+                          "finite-difference (autograd's double backward cannot be compiled)")
+    return CompiledStep(fn, torch.device(device))

@@ -1,0 +1,41 @@
+"""Weights of (possibly weight-normalised) linear layers, computed once where that is safe.
+
+`torch.nn.utils.parametrizations.weight_norm` recomputes ``g * v / |v|`` at every access of
+``lin.weight``. Within one training step the SDF network is evaluated several times with the
+same parameters (the up-sampling rounds without gradients, then the rendering pass), so
+`layer_weight` keeps the weight computed without gradients until a parameter changes (its
+version counter moves with every in-place update: optimiser steps, `load_state_dict`) and
+recomputes it, with its graph, whenever gradients are enabled.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+from torch.nn.utils import parametrize
+
+_CACHE = "_neus_l0_weight_cache"
+
+
+def layer_weight(lin: nn.Linear) -> Tensor:
+    """The layer's weight (out, in); for a weight-normalised layer outside autograd, the
+    cached ``g * v / |v|`` while `g` and `v` are unchanged."""
+    if not parametrize.is_parametrized(lin, "weight"):
+        return lin.weight
+    if torch.is_grad_enabled() or torch.compiler.is_compiling():
+        return lin.weight
+    originals = lin.parametrizations.weight
+    g, v = originals.original0, originals.original1
+    key = (g._version, v._version, g.data_ptr(), v.data_ptr(), g.dtype, g.device)
+    cached = lin.__dict__.get(_CACHE)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    w = lin.weight
+    lin.__dict__[_CACHE] = (key, w)
+    return w
+
+
+def linear(lin: nn.Linear, h: Tensor) -> Tensor:
+    """`lin(h)` with `layer_weight`: h (..., in) -> (..., out)."""
+    return F.linear(h, layer_weight(lin), lin.bias)

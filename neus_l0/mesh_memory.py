@@ -1,0 +1,178 @@
+"""How much host memory a mesh extraction needs, estimated before anything is allocated.
+
+`neus-l0 mesh --resolution R` checks the estimate against the memory available, so that
+``--resolution 100000`` is a one-line refusal naming the largest resolution that fits
+instead of numpy failing to allocate terabytes.
+
+The estimate (bytes) has two parts:
+
+- the grids, exact: *dense* holds the float32 volume, 4 R^3; *sparse* (blocks of ``block``
+  cells, nb = ceil((R - 1) / block) per axis) holds the float32 coarse grid,
+  4 (nb + 1)^3, and `keep_blocks`'s per-block temporaries (about 16 bytes a block), plus
+  one batch of `chunk` points (about 40 bytes a point);
+- the mesh, assumed: marching cubes gives about `FACES_PER_AREA` triangles per grid step
+  squared of surface (measured: 3.0 on spheres of radius 0.5 and 0.9 at 256^3 and
+  512^3), and extraction, clean-up and export peak at about `BYTES_PER_FACE` bytes a face
+  (measured 780-1030 bytes a face, see docs/BENCHMARKS.md). The surface area is not known
+  before the extraction; `TYPICAL_AREA` (a sphere of radius 1/sqrt(2) in the normalised
+  frame, where the object's bounding sphere is the unit sphere) stands in for it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+from neus_l0.errors import NeusL0Error
+
+FACES_PER_AREA = 3.0
+"""Marching-cubes triangles per (grid step)^2 of surface area (measured on spheres)."""
+
+BYTES_PER_FACE = 1100
+"""Peak bytes per output face of extraction + clean-up + export (measured <= 1033)."""
+
+TYPICAL_AREA = 2.0 * math.pi
+"""Assumed surface area in the normalised frame: a sphere of radius 1/sqrt(2)."""
+
+KEEP_BLOCK_BYTES = 16
+"""`keep_blocks` temporaries per block (absolute maximum, counts, masks, dilation)."""
+
+POINT_BYTES = 40
+"""Bytes per point of one evaluation batch (coordinates, broadcasts, SDF values)."""
+
+
+def mesh_faces(resolution: int, bound: float = 1.0, area: float = TYPICAL_AREA) -> float:
+    """Expected marching-cubes faces for a surface of `area` on ``linspace(-bound, bound, R)^3``."""
+    step = 2.0 * bound / max(int(resolution) - 1, 1)
+    return FACES_PER_AREA * area / step**2
+
+
+def extraction_bytes(method: str, resolution: int, block: int = 8, bound: float = 1.0,
+                     area: float = TYPICAL_AREA, chunk: int = 2**18) -> int:
+    """Estimated peak host memory of `neus_l0.mesh.extract_mesh` (see the module docstring).
+
+    Args:
+        method: "dense" or "sparse".
+        resolution: R, grid samples per axis.
+        block: the sparse path's cells per block edge.
+        bound: half-size of the cube (the grid's extent).
+        area: assumed surface area in the normalised frame.
+        chunk: points per SDF call.
+
+    Returns:
+        bytes.
+    """
+    R = int(resolution)
+    if method == "dense":
+        grid = 4 * R**3
+    elif method == "sparse":
+        nb = -(-(R - 1) // int(block))
+        grid = 4 * (nb + 1) ** 3 + KEEP_BLOCK_BYTES * nb**3 + POINT_BYTES * chunk
+    else:
+        raise NeusL0Error(f"mesh method '{method}': use dense or sparse")
+    return int(grid + BYTES_PER_FACE * mesh_faces(R, bound, area))
+
+
+def _cgroup_available() -> int | None:
+    """Memory left under a cgroup v2 or v1 limit (containers), or None without a limit."""
+    pairs = [("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+             ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+              "/sys/fs/cgroup/memory/memory.usage_in_bytes")]
+    for limit_file, usage_file in pairs:
+        try:
+            limit = Path(limit_file).read_text().strip()
+            usage = int(Path(usage_file).read_text().strip())
+        except (OSError, ValueError):
+            continue
+        if limit.isdigit() and int(limit) < 2**60:
+            return max(int(limit) - usage, 0)
+    return None
+
+
+def available_memory() -> int | None:
+    """Bytes of host memory available now, or None where it cannot be told.
+
+    Linux: ``MemAvailable`` of /proc/meminfo, capped by a cgroup limit; elsewhere
+    ``os.sysconf`` (free physical pages), where the platform has it.
+    """
+    found = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                found = int(line.split()[1]) * 1024
+                break
+    except (OSError, ValueError, IndexError):
+        found = None
+    if found is None:
+        try:
+            found = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (AttributeError, ValueError, OSError):
+            found = None
+    cgroup = _cgroup_available()
+    if cgroup is not None:
+        found = cgroup if found is None else min(found, cgroup)
+    return found
+
+
+def largest_resolution(method: str, budget: int, block: int = 8, bound: float = 1.0,
+                       area: float = TYPICAL_AREA) -> int:
+    """The largest R whose `extraction_bytes` fits in `budget` bytes (0 when not even R = 8).
+
+    `extraction_bytes` grows with R, so a bisection finds it.
+    """
+    def fits(r: int) -> bool:
+        return extraction_bytes(method, r, block, bound, area) <= budget
+
+    if not fits(8):
+        return 0
+    lo, hi = 8, 16
+    while fits(hi):
+        lo, hi = hi, hi * 2
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return lo
+
+
+def _gib(n: float) -> str:
+    """Bytes as GiB, or TiB / PiB where large."""
+    for unit, scale in (("PiB", 2**50), ("TiB", 2**40)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n / 2**30:.3g} GiB"
+
+
+def plan_extraction(method: str, resolution: int, block: int = 8,
+                    available: int | None = None) -> tuple[str, str | None]:
+    """Check that an extraction fits in memory; route dense to sparse where only that fits.
+
+    Args:
+        method: "dense" or "sparse" (``auto`` already resolved).
+        resolution: R.
+        block: the sparse path's block size.
+        available: bytes available (default: `available_memory()`; None = unknown, no check).
+
+    Returns:
+        (method to use, a note for the user or None).
+
+    Raises:
+        NeusL0Error: one line with the estimate, the memory available and the largest
+            resolution that fits.
+    """
+    if available is None:
+        available = available_memory()
+    if available is None:
+        return method, None
+    need = extraction_bytes(method, resolution, block)
+    if need <= available:
+        return method, None
+    if method == "dense" and extraction_bytes("sparse", resolution, block) <= available:
+        sparse = extraction_bytes("sparse", resolution, block)
+        return "sparse", (f"--resolution {resolution}: the dense grid needs about {_gib(need)} "
+                          f"({_gib(available)} available); using the sparse path (about "
+                          f"{_gib(sparse)})")
+    best = largest_resolution("sparse", available, block)
+    raise NeusL0Error(f"--resolution {resolution}: {method} extraction needs about "
+                      f"{_gib(need)} of memory, {_gib(available)} is available; the largest "
+                      f"resolution that fits is about {best} (sparse)")

@@ -1,0 +1,60 @@
+"""`train.compile`: the step compiles without graph breaks and trains as the eager one."""
+
+import pytest
+import torch
+from test_train import SMALL, sphere_scene
+
+from neus_l0.config import load_config
+from neus_l0.errors import ConfigError
+from neus_l0.train import draw_step_inputs, make_model, render_and_loss, train
+
+ANALYTIC = ["model.sdf.gradient=analytic"]
+
+
+@pytest.mark.parametrize("conf,extra", [
+    ("demo", []),
+    ("demo", SMALL + ["render.perturb=false", "train.eikonal_fraction=0.5"]),
+    ("demo", ["sampler=hvs", "train.anneal_end=100"]),
+])
+def test_the_step_has_no_graph_break(tmp_path, conf, extra):
+    scene = sphere_scene(tmp_path / "s")
+    cfg = load_config(conf, ANALYTIC + extra)
+    model = make_model(cfg)
+    inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), None)
+    torch._dynamo.reset()
+    ex = torch._dynamo.explain(render_and_loss)(model, inputs, cfg, cfg.sampler, ())
+    assert ex.graph_break_count == 0, [b.reason for b in ex.break_reasons]
+    assert ex.graph_count == 1
+
+
+def test_compile_needs_a_gradient_without_double_backward(tmp_path):
+    cfg = load_config("demo", SMALL + ["train.compile=true", "model.sdf.gradient=autograd",
+                                       "train.iters=2"])
+    with pytest.raises(ConfigError, match="model.sdf.gradient=analytic"):
+        train(sphere_scene(tmp_path / "s"), cfg, tmp_path / "run", progress=False)
+
+
+@pytest.mark.slow
+def test_compiled_training_equals_eager_and_compiles_at_most_thrice(tmp_path):
+    from torch._dynamo.utils import counters
+
+    scene = sphere_scene(tmp_path / "s")
+    base = SMALL + ANALYTIC + ["train.iters=50", "train.log_every=1",
+                               "train.tensorboard=false"]
+    eager = train(scene, load_config("demo", base), tmp_path / "eager", progress=False)
+    torch._dynamo.reset()
+    counters.clear()
+    cfg = load_config("demo", base + ["train.compile=true"])
+    part = train(scene, cfg, tmp_path / "comp", progress=False, stop_at=25)
+    done = train(scene, cfg, tmp_path / "comp", progress=False, resume=True)
+    assert part.iteration == 25 and done.iteration == eager.iteration == 50
+    assert counters["stats"]["unique_graphs"] <= 3  # one compile, at most 2 recompiles
+    import json
+    curve = {}
+    for run in ("eager", "comp"):
+        lines = (tmp_path / run / "metrics.jsonl").read_text().splitlines()
+        curve[run] = [json.loads(x)["loss"] for x in lines if "loss" in json.loads(x)]
+    assert len(curve["eager"]) == len(curve["comp"]) == 50
+    diff = torch.tensor(curve["eager"]) - torch.tensor(curve["comp"])
+    assert diff[:5].abs().max() < 1e-5  # the same steps to float rounding ...
+    assert (diff.abs() / torch.tensor(curve["eager"])).max() < 1e-2  # ... and curve
