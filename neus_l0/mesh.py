@@ -269,6 +269,33 @@ def _blocks_in_region(region: VisualHull, keep: np.ndarray, coarse: np.ndarray,
     return new, int((keep & ~touch).sum())
 
 
+def _block_surface(vals: np.ndarray, extent: np.ndarray, origin: np.ndarray,
+                   level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Marching cubes of one block of `sparse_marching_cubes`.
+
+    Args:
+        vals: (B+1, B+1, B+1) SDF samples; extent: (3,) samples per axis inside the grid;
+        origin: (3,) the block's first grid index; level: the iso-value.
+
+    Returns:
+        vertices (V_b, 3) float64 in global grid units, faces (F_b, 3), and (V_b,) bool:
+        the merge candidates.
+    """
+    from skimage import measure
+
+    e = extent
+    v, f, _, _ = measure.marching_cubes(vals[:e[0], :e[1], :e[2]], level=level,
+                                        gradient_direction="descent")
+    # global grid units rounded to float32 like the dense path's vertices: a vertex at a
+    # node can come out at local 0 + 1e-15 in one block and at B in the next
+    lo = origin.astype(np.float32)
+    gv = v + lo  # (V_b, 3) float32
+    # merge candidates: on the block's boundary (shared with a neighbour), or on a grid node
+    # (sdf == level there: scikit-image emits one vertex per edge)
+    face = ((gv == lo) | (gv == lo + (e - 1))).any(1) | (gv == np.round(gv)).all(1)
+    return gv.astype(np.float64), f, face
+
+
 def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
                           level: float = 0.0, device: str | torch.device = "cpu",
                           chunk: int = 2**18, block: int = 8, lipschitz: float = 1.5,
@@ -285,19 +312,14 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
        sample has the same value in both paths.
     4. scikit-image marching cubes per block that crosses `level`; vertices on shared block
        faces come from the same grid edge and values in both blocks, hence have identical
-       coordinates (in float32 grid units, as the dense path computes them), and are merged
-       exactly: the mesh is watertight where the surface is
-       closed.
+       coordinates (float32 grid units, as the dense path's), and are merged exactly.
 
-    With a visual `hull` (`neus_l0.hull.VisualHull`), only blocks that meet its region
-    ``hull.for_grid(step)`` are evaluated, and grid samples outside the region read as far
-    outside (+1e3): no surface is exported outside the region (floaters vanish; a negative
-    region that leaks out is capped at its boundary, and blocks on the region's boundary
-    with a negative corner are kept for that cap). Inside the carved hull the mesh is the
+    With a visual `hull`, only blocks that meet ``hull.for_grid(step)`` are evaluated, and
+    samples outside it read as far outside (+1e3): nothing is exported outside (a negative
+    region that leaks out is capped at its boundary). Inside the carved hull the mesh is the
     one without a hull: every grid cube that meets it has all its corners in the region.
 
-    Memory: the coarse grid, one batch of blocks and the output mesh; never the R^3 volume.
-
+    Memory: the coarse grid, one batch of blocks and the mesh; never the R^3 volume.
     Args:
         sdf_fn: the SDF, (P, 3) -> (P,) or (P, 1) (called under `torch.no_grad`).
         resolution: R, samples per axis.
@@ -310,14 +332,11 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
         hull: optional visual hull: evaluate and export only inside it.
 
     Returns:
-        vertices (V, 3) float64 in the normalised frame, faces (F, 3) int64 (outward normals),
-        and the `ExtractionStats`.
+        vertices (V, 3) float64 (normalised frame), faces (F, 3) int64, `ExtractionStats`.
 
     Raises:
         NeusL0Error: when no block crosses `level` (no surface inside the cube).
     """
-    from skimage import measure
-
     t0 = time.perf_counter()
     R, B = int(resolution), int(block)
     if R < 2 or B < 1:
@@ -364,19 +383,10 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
         g = vals.reshape(len(bi), -1)
         cross = (g.max(1) > level) & (g.min(1) <= level)  # (m,)
         for j in np.flatnonzero(cross):
-            e = extent[s + j]
-            v, f, _, _ = measure.marching_cubes(vals[j, :e[0], :e[1], :e[2]], level=level,
-                                                gradient_direction="descent")
-            # global grid units rounded to float32 like the dense path's vertices: a vertex
-            # at a node can come out at local 0 + 1e-15 in one block and at B in the next
-            lo = (kept[s + j] * B).astype(np.float32)
-            gv = v + lo  # (V_b, 3) float32
-            verts.append(gv.astype(np.float64))
+            gv, f, face = _block_surface(vals[j], extent[s + j], kept[s + j] * B, level)
+            verts.append(gv)
             faces.append(f)
-            # merge candidates: on the block's boundary (shared with a neighbour), or on a
-            # grid node (sdf == level there: scikit-image emits one vertex per edge)
-            on_face.append(((gv == lo) | (gv == lo + (e - 1))).any(1)
-                           | (gv == np.round(gv)).all(1))
+            on_face.append(face)
         n_surface += int(cross.sum())
     if not verts:
         raise NeusL0Error(f"no surface: the SDF does not cross {level} inside the cube "

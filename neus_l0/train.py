@@ -58,6 +58,7 @@ from neus_l0.data.rays import random_pixel_rays, random_rays
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields import NeuSModel, build_model
+from neus_l0.fields.linear import clear_weight_cache
 from neus_l0.interrupt import StopOnSignal
 from neus_l0.losses import eikonal_indices, neus_loss
 from neus_l0.occupancy import OccupancyGrid
@@ -312,6 +313,7 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     else:
         loss.backward()
         optimizer.step()
+    clear_weight_cache(model)  # the update may not move the version counters it keys on
     return metrics
 
 

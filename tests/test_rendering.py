@@ -181,8 +181,9 @@ def test_l0_midpoint_default_at_least_as_tight_as_endpoint():
     o, d, hit, t_hit = rays_at_sphere(256)
     frac = {}
     for placement in ("midpoint", "endpoint"):
-        cfg = RenderConfig(point_weights=placement)
-        out = render_rays(model, o, d, cfg, "l0")
+        from neus_l0.config import SamplerConfig
+
+        out = render_rays(model, o, d, RenderConfig(), SamplerConfig(placement=placement))
         frac[placement] = ((out["z_fine"][hit] - t_hit[hit, None]).abs() < 0.005).float().mean()
     assert frac["midpoint"] >= frac["endpoint"] - 0.01
 

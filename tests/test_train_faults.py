@@ -77,3 +77,21 @@ def test_tensorboard_events_hold_the_training_curves(scene, tmp_path):
     assert tags["images"], "the validation image is in TensorBoard too"
     lines = [line for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert len(lines) == 2
+
+
+def test_the_no_grad_passes_see_every_optimiser_update(scene):
+    """The up-sampling's cached weight-norm weights follow the fused Adam's updates."""
+    from neus_l0.train import make_model, make_optimizer, train_step
+
+    cfg = load_config("demo", SMALL)
+    model = make_model(cfg)
+    opt = make_optimizer(model, cfg)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(64, 3) - 0.5
+    for it in range(3):
+        train_step(model, opt, scene, cfg, it, g)
+        with torch.no_grad():
+            cached = model.sdf.sdf(x)  # the path the up-sampling rounds take
+        with torch.enable_grad():
+            fresh = model.sdf.sdf(x)  # weights recomputed with their graph
+        torch.testing.assert_close(cached, fresh.detach(), rtol=0, atol=0)

@@ -39,3 +39,14 @@ def layer_weight(lin: nn.Linear) -> Tensor:
 def linear(lin: nn.Linear, h: Tensor) -> Tensor:
     """`lin(h)` with `layer_weight`: h (..., in) -> (..., out)."""
     return F.linear(h, layer_weight(lin), lin.bias)
+
+
+def clear_weight_cache(module: nn.Module) -> None:
+    """Forget every cached weight under `module` (call after each optimiser step).
+
+    The version counters that `layer_weight` keys on do not move under every update: the
+    fused Adam kernel writes the parameters without bumping them (measured, torch 2.13), so
+    the training step clears the cache itself after the update.
+    """
+    for m in module.modules():
+        m.__dict__.pop(_CACHE, None)
