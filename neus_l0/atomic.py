@@ -53,3 +53,18 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
 def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
     """Write `obj` as indented JSON to `path` atomically."""
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+def atomic_write_png(path: str | os.PathLike, bgr: Any) -> Path:
+    """Encode an (H, W[, 3]) uint8 image (OpenCV's BGR order) as PNG and write it atomically.
+
+    Raises:
+        OSError: when OpenCV cannot encode it.
+    """
+    import cv2
+
+    ok, buf = cv2.imencode(".png", bgr)
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    data = buf.tobytes()
+    return atomic_write(path, lambda p: p.write_bytes(data))

@@ -547,6 +547,15 @@ def _validate(obj: Any, prefix: str) -> None:
                     raise bad(name, "must be > 0")
             if obj.start_level is not None and obj.start_level < 0:
                 raise bad("start_level", "must be >= 0 (or null: all levels)")
+    if isinstance(obj, HullConfig):
+        if obj.resolution < 8:
+            raise bad("resolution", "must be >= 8 cells per axis")
+        if not obj.margin_px >= 0:
+            raise bad("margin_px", "must be >= 0 pixels")
+    if isinstance(obj, SDFConfig) and obj.gradient not in (
+            "autograd", "analytic", "finite-difference"):
+        raise bad("gradient", f"unknown method {obj.gradient!r} (autograd, analytic, "
+                  "finite-difference)")
     if isinstance(obj, ColorConfig) and obj.mode not in ("idr", "no_view_dir", "no_normal"):
         raise bad("mode", f"unknown mode {obj.mode!r} (idr, no_view_dir, no_normal)")
     if isinstance(obj, RenderConfig):

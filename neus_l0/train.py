@@ -288,6 +288,9 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
         scaler: the fp16 gradient scaler (`make_scaler`); None: none.
         batch_size: rays of this step (None: `train.batch_size`).
         setup: the run's hull bounds, sampler, pixel pool and compiled step (`StepSetup`).
+            None: no bounds, no pool, eager, and the config's sampler built for this call
+            (a loop should build a `StepSetup` once: with ``sampler.compile`` a sampler
+            built per call would compile per call).
 
     Returns:
         (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order

@@ -9,11 +9,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neus_l0.atomic import atomic_write
+from neus_l0.atomic import atomic_write_png
 from neus_l0.config import Config
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene
-from neus_l0.errors import NeusL0Error
 from neus_l0.fields import NeuSModel
 from neus_l0.rendering import RayBounds, render_image
 from neus_l0.schedule import cos_anneal_ratio
@@ -57,12 +56,4 @@ def validation_image(model: NeuSModel, scene: Scene, cfg: Config, view: int, ite
 
 def write_png(path: Path, rgb: np.ndarray) -> None:
     """Write an (H, W, 3) uint8 RGB image atomically."""
-    import cv2
-
-    def writer(tmp: Path) -> None:
-        ok, buf = cv2.imencode(".png", rgb[..., ::-1])
-        if not ok:
-            raise NeusL0Error(f"{path}: cannot encode PNG")
-        tmp.write_bytes(buf.tobytes())
-
-    atomic_write(path, writer)
+    atomic_write_png(path, np.ascontiguousarray(rgb[..., ::-1]))

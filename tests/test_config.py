@@ -229,3 +229,13 @@ def test_bad_sampler_settings_name_the_key(override, words):
         load_config("demo", override)
     for w in words:
         assert w in str(exc.value)
+
+
+@pytest.mark.parametrize("override,key", [
+    ("render.hull.resolution=-1", "render.hull.resolution"),
+    ("render.hull.margin_px=-2", "render.hull.margin_px"),
+    ("model.sdf.gradient=symbolic", "model.sdf.gradient"),
+])
+def test_bad_hull_and_gradient_settings_name_the_key(override, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config("demo", [override])

@@ -19,11 +19,10 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 import torch
 
-from neus_l0.atomic import atomic_write, atomic_write_json
+from neus_l0.atomic import atomic_write, atomic_write_json, atomic_write_png
 from neus_l0.data.cameras import (
     cap_centres,
     intrinsics_to_fit,
@@ -146,12 +145,9 @@ def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray | None = None)
 
 
 def _write_png(path: Path, rgb: np.ndarray) -> None:
+    """(H, W, 3) float RGB in [0, 1] as an 8-bit PNG, atomically."""
     img = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
-    atomic_write(path, lambda p: cv2.imwrite(str(p), img[..., ::-1]) or _fail(p))
-
-
-def _fail(p):
-    raise OSError(f"{p}: cv2.imwrite failed")
+    atomic_write_png(path, np.ascontiguousarray(img[..., ::-1]))
 
 
 def _resolve(scene: str):

@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from neus_l0.atomic import atomic_write, atomic_write_text
+from neus_l0.atomic import atomic_write, atomic_write_png, atomic_write_text
 from neus_l0.data.cameras import projection_matrix, sphere_scale_mat
 from neus_l0.errors import NeusL0Error
 from neus_l0.photos.sparse_io import SparseModel
@@ -139,14 +139,6 @@ def _read(path: Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
     return img
 
 
-def _write_png(path: Path, img: np.ndarray) -> None:
-    ok, buf = cv2.imencode(".png", img)
-    if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    data = buf.tobytes()
-    atomic_write(path, lambda p: p.write_bytes(data))
-
-
 def _remove_stale(folder: Path, n: int) -> None:
     """Delete ``NNN.png`` files from an earlier run beyond the first `n` views."""
     if folder.is_dir():
@@ -217,14 +209,14 @@ def export_scene(out: str | Path, model: SparseModel, photo_dir: str | Path,
         u = und[int(model.camera_ids[i])]
         src = photo_dir / name
         img = _read(src)
-        _write_png(out / "image" / f"{i:03d}.png", u.apply(img))
+        atomic_write_png(out / "image" / f"{i:03d}.png", u.apply(img))
         if masks is not None:
             m = _read(masks[name], cv2.IMREAD_GRAYSCALE)
             if m.shape[:2] != img.shape[:2]:
                 raise NeusL0Error(f"{masks[name]}: mask size {m.shape[1]}x{m.shape[0]} differs "
                                   f"from photo {src.name} ({img.shape[1]}x{img.shape[0]})")
             fg = u.apply(m.astype(np.float32) / 255.0) > 0.5
-            _write_png(out / "mask" / f"{i:03d}.png",
+            atomic_write_png(out / "mask" / f"{i:03d}.png",
                        np.repeat((fg * 255).astype(np.uint8)[..., None], 3, axis=-1))
         w2c = np.eye(4)
         w2c[:3] = model.w2c[i]
