@@ -29,13 +29,19 @@ from typing import TYPE_CHECKING, Protocol
 import torch
 from torch import Tensor
 
-from neus_l0.sampling import sample_l0, sample_neus_sections, sample_pdf, sanitize_weights
+from neus_l0.sampling import (
+    sample_l0,
+    sample_l0_sections,
+    sample_neus_sections,
+    sample_pdf,
+    sanitize_weights,
+)
 
 if TYPE_CHECKING:  # config imports this module's registry; no cycle at run time
     from neus_l0.config import SamplerConfig
 
 __all__ = [
-    "HVSSampler", "L0Sampler", "L0_KINDS", "NeuSExactSampler", "PAD_MODES", "PLACEMENTS",
+    "HVSSampler", "L0Sampler", "L0_KINDS", "MASSES", "NeuSExactSampler", "PAD_MODES", "PLACEMENTS",
     "SAMPLERS", "Sampler", "Sections", "build_sampler", "merge_sorted",
     "section_to_point_weights", "transmittance", "up_sample", "upsample_section_weights",
 ]
@@ -46,6 +52,8 @@ L0_KINDS: dict[str, str] = {"l0": "exp", "l0-inverse": "inverse", "l0-linear": "
 PAD_MODES = ("absolute", "relative", "none")
 #: Where section weights are placed as point weights (see `section_to_point_weights`).
 PLACEMENTS = ("midpoint", "endpoint")
+#: Where the L0 samplers' section shares come from (see `L0Sampler`).
+MASSES = ("interpolant", "sections")
 
 
 # ------------------------------------------------------------------------------------------
@@ -218,13 +226,20 @@ class L0Sampler:
         pad, pad_mode, blur: maxblur's pad, how it scales, and whether to blur at all.
         placement, as_density: see `section_to_point_weights`.
         base_inv_s: NeuS's first-round sharpness.
+        masses: ``sections`` (the default: NeuS's section weights decide the shares, the
+            interpolant only the place inside a section: `sample_l0_sections`; placement,
+            as_density, blur and pad are then unused) or ``interpolant`` (the interpolant's
+            mass decides each stretch's share, the paper's draw: `sample_l0`).
         compile: draw through `torch.compile` (``exp`` and ``linear`` only; compiled, the
             ``inverse`` kind's all-zero rays came out non-finite, so it stays eager).
     """
 
     def __init__(self, name: str = "l0", kind: str = "exp", pad: float = 0.0,
                  pad_mode: str = "relative", blur: bool = False, placement: str = "midpoint",
-                 as_density: bool = True, base_inv_s: float = 64.0, compile: bool = False):
+                 as_density: bool = True, base_inv_s: float = 64.0, compile: bool = False,
+                 masses: str = "sections"):
+        if masses not in MASSES:
+            raise ValueError(f"unknown L0 masses {masses!r} (choose from {MASSES})")
         if pad_mode not in PAD_MODES:
             raise ValueError(f"unknown pad mode {pad_mode!r} (choose from {PAD_MODES})")
         if placement not in PLACEMENTS:
@@ -232,7 +247,7 @@ class L0Sampler:
         self.name, self.kind, self.base_inv_s = name, kind, float(base_inv_s)
         self.pad = 0.0 if pad_mode == "none" else float(pad)
         self.pad_mode, self.blur = pad_mode, blur
-        self.placement, self.as_density = placement, as_density
+        self.placement, self.as_density, self.masses = placement, as_density, masses
         self._draw = sample_l0
         if compile and kind in ("exp", "linear"):
             self._draw = torch.compile(sample_l0, dynamic=True)
@@ -240,7 +255,8 @@ class L0Sampler:
     def __repr__(self) -> str:
         return (f"L0Sampler(name={self.name!r}, kind={self.kind!r}, pad={self.pad}, "
                 f"pad_mode={self.pad_mode!r}, blur={self.blur}, placement={self.placement!r}, "
-                f"as_density={self.as_density}, base_inv_s={self.base_inv_s})")
+                f"as_density={self.as_density}, masses={self.masses!r}, "
+                f"base_inv_s={self.base_inv_s})")
 
     def point_weights(self, sections: Sections) -> tuple[Tensor, Tensor]:
         """The nodes and weights the L0 interpolation runs on, before maxblur; (B, M) each."""
@@ -254,7 +270,10 @@ class L0Sampler:
         return t, w
 
     def draw(self, sections: Sections, n_samples: int) -> Tensor:
-        """Deterministic `sample_l0` on the point weights; (B, n_samples)."""
+        """Deterministic `sample_l0` on the point weights (or `sample_l0_sections` on the
+        sections); (B, n_samples)."""
+        if self.masses == "sections":
+            return sample_l0_sections(sections.z, sections.weights, n_samples, self.kind)
         t, w = self.point_weights(sections)
         return self._draw(t, w, n_samples, kind=self.kind, det=True, blur=self.blur,
                           pad=self.pad)
@@ -262,7 +281,7 @@ class L0Sampler:
 
 def _l0(cfg: SamplerConfig) -> L0Sampler:
     return L0Sampler(cfg.name, cfg.l0_kind(), cfg.pad, cfg.pad_mode, cfg.blur, cfg.placement,
-                     cfg.as_density, cfg.base_inv_s, cfg.compile)
+                     cfg.as_density, cfg.base_inv_s, cfg.compile, cfg.masses)
 
 
 #: The one registry of sampler names: name -> builder from a `SamplerConfig`.

@@ -69,7 +69,8 @@ from torch import Tensor
 
 __all__ = [
     "KINDS", "maxblur", "neus_section_inverse_cdf", "piece_inverse_cdf", "piece_mass",
-    "quantiles", "sample_l0", "sample_neus_sections", "sample_pdf", "sanitize_weights",
+    "quantiles", "sample_l0", "sample_l0_sections", "sample_neus_sections", "sample_pdf",
+    "sanitize_weights",
 ]
 
 #: Interpolation kinds accepted by :func:`sample_l0`.
@@ -569,5 +570,99 @@ def sample_neus_sections(z: Tensor, weights: Tensor, prev_sdf: Tensor, next_sdf:
     q = _fraction(u, lo, _inverse_width(lo, hi), idx)
     s = neus_section_inverse_cdf(torch.gather(x, -1, idx), torch.gather(y, -1, idx), q)
     s = torch.where(degenerate, q, s)  # a ray without mass: uniform inside each section too
+    out = torch.addcmul(torch.gather(z[:, :-1], -1, idx), s, torch.gather(d, -1, idx))
+    return _finish(out, z).reshape(*batch, n_samples)
+
+
+# ----------------------------------------------------------------------------- L0 in sections
+
+
+def _boundary_values(rho: Tensor, d: Tensor, kind: str) -> Tensor:
+    """The interpolant's value at the section ends, from the section densities at midpoints.
+
+    Between the midpoints of sections j-1 and j the shared end z_j lies at the fraction
+    ``f = d_{j-1} / (d_{j-1} + d_j)``; there the kind's interpolant between ``rho_{j-1}`` and
+    ``rho_j`` takes the value: ``exp`` the weighted geometric mean, ``linear`` the weighted
+    arithmetic mean, ``inverse`` the weighted harmonic mean (0 where either is 0). The two
+    outer ends repeat the outer sections' densities.
+
+    Args:
+        rho: (R, M) non-negative section densities; d: (R, M) section lengths.
+        kind: ``exp``, ``inverse`` or ``linear``.
+
+    Returns:
+        (R, M+1) values at z_0 .. z_M.
+    """
+    a, b = rho[:, :-1], rho[:, 1:]  # (R, M-1) the two sections around each inner end
+    span = d[:, :-1] + d[:, 1:]
+    f = torch.where(span > 0, d[:, :-1] / torch.where(span > 0, span, 1.0), 0.5)
+    if kind == "linear":
+        inner = torch.lerp(a, b, f)
+    else:
+        positive = (a > 0) & (b > 0)
+        sa, sb = torch.where(positive, a, 1.0), torch.where(positive, b, 1.0)
+        if kind == "exp":
+            inner = torch.exp(torch.lerp(torch.log(sa), torch.log(sb), f))
+        else:
+            inner = 1.0 / torch.lerp(1.0 / sa, 1.0 / sb, f)
+        inner = torch.where(positive, inner, 0.0)
+    return torch.cat([rho[:, :1], inner, rho[:, -1:]], dim=-1)
+
+
+@torch.no_grad()
+def sample_l0_sections(z: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
+                       det: bool = True, generator: torch.Generator | None = None) -> Tensor:
+    """The L0 interpolant inside NeuS's sections, each section keeping its own mass.
+
+    The L0-Sampler's nodes are the section midpoints ``m_j`` with the section densities
+    ``rho_j = w_j / d_j``; between nodes the weights are interpolated by the kind's law
+    (`piece_inverse_cdf`). `sample_l0` draws from that interpolant as a whole, so a section's
+    share of the samples is the interpolant's mass over it, not NeuS's weight. Here each
+    section gets exactly its weight's share, as in NeuS's piecewise-constant draw
+    (`sample_pdf`), and only the position inside the section follows the interpolant: two
+    pieces, ``[z_j, m_j]`` from the end value ``g_j`` (`_boundary_values`) to ``rho_j``, and
+    ``[m_j, z_{j+1}]`` from ``rho_j`` to ``g_{j+1}``, split by their masses. A section whose
+    two pieces carry no mass (an exponential piece with a zero end) is sampled uniformly.
+
+    Args:
+        z: (..., N) sorted section ends, N >= 2.
+        weights: (..., N-1) mass of each section (any values; see the module notes).
+        n_samples: n, samples per ray.
+        kind: ``exp``, ``inverse`` or ``linear``.
+        det: midpoint quantiles ``(k + 0.5) / n`` instead of stratified random ones.
+        generator: random source for ``det=False``.
+
+    Returns:
+        (..., n) sorted samples inside [z_0, z_{N-1}], without gradient.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown L0 kind {kind!r}; expected one of {KINDS}")
+    N = z.shape[-1]
+    if N < 2:
+        raise ValueError("sample_l0_sections needs at least two section ends (N >= 2)")
+    if weights.shape != (*z.shape[:-1], N - 1):
+        raise ValueError(f"z (..., N) and weights (..., N-1) disagree: "
+                         f"{tuple(z.shape)} vs {tuple(weights.shape)}")
+    batch = z.shape[:-1]
+    z = z.detach().reshape(-1, N)  # (R, N)
+    w = _prepare_weights(weights.reshape(-1, N - 1), z.dtype, False, 0.0)  # (R, M)
+    d = (z[:, 1:] - z[:, :-1]).clamp_min(0)  # (R, M)
+    floor = 1e-3 * d.mean(dim=-1, keepdim=True)
+    rho = w / torch.maximum(d, floor).clamp_min(torch.finfo(z.dtype).tiny)  # (R, M)
+    g = _boundary_values(rho, d, kind)  # (R, M+1)
+    lo, hi, degenerate = _cdf(w, d)
+    u = quantiles((z.shape[0],), n_samples, det, generator, z.dtype, z.device)  # (R, n)
+    idx = _locate(hi, u)
+    q = _fraction(u, lo, _inverse_width(lo, hi), idx)  # (R, n) fraction inside the section
+    a, c, b = torch.gather(g, -1, idx), torch.gather(rho, -1, idx), torch.gather(g, -1, idx + 1)
+    m1, m2 = piece_mass(a, c, kind), piece_mass(c, b, kind)  # (R, n) half-piece masses
+    total = m1 + m2
+    r = q * total
+    first = r < m1
+    q1 = torch.where(first, r / torch.where(m1 > 0, m1, 1.0), 0.0).clamp(0.0, 1.0)
+    q2 = torch.where(first, 0.0, (r - m1) / torch.where(m2 > 0, m2, 1.0)).clamp(0.0, 1.0)
+    s = torch.where(first, 0.5 * piece_inverse_cdf(a, c, q1, kind),
+                    0.5 + 0.5 * piece_inverse_cdf(c, b, q2, kind))
+    s = torch.where((total > 0) & ~degenerate, s, q)
     out = torch.addcmul(torch.gather(z[:, :-1], -1, idx), s, torch.gather(d, -1, idx))
     return _finish(out, z).reshape(*batch, n_samples)

@@ -175,7 +175,8 @@ def test_sampler_block_and_its_shorthand(tmp_path):
     assert isinstance(cfg.sampler, SamplerConfig) and cfg.sampler.name == "l0-linear"
     assert cfg.sampler == "l0-linear" and str(cfg.sampler) == "l0-linear"
     assert cfg.sampler.l0_kind() == "linear" and cfg.sampler.pad == SamplerConfig().pad
-    cfg = load_config("demo", ["sampler.pad=0.05", "sampler.pad_mode=relative"])
+    cfg = load_config("demo", ["sampler.pad=0.05", "sampler.pad_mode=relative",
+                               "sampler.masses=interpolant"])
     assert cfg.sampler.name == "l0" and (cfg.sampler.pad, cfg.sampler.pad_mode) == (0.05,
                                                                                     "relative")
     cfg = load_config("wmask", ["sampler.pad_mode=none"])  # the file's name is kept
@@ -183,10 +184,10 @@ def test_sampler_block_and_its_shorthand(tmp_path):
     # a bare name over a block changes the name only, in either order
     for items in (["sampler.pad=0.2", "sampler=l0-linear"], ["sampler=l0-linear",
                                                              "sampler.pad=0.2"]):
-        s = load_config("wmask", items).sampler
+        s = load_config("wmask", [*items, "sampler.masses=interpolant"]).sampler
         assert (s.name, s.pad) == ("l0-linear", 0.2), items
     p = tmp_path / "block.yaml"
-    p.write_text("sampler: {name: l0, pad_mode: relative, pad: 0.05}\n")
+    p.write_text("sampler: {name: l0, pad_mode: relative, pad: 0.05, masses: interpolant}\n")
     s = load_config(str(p), ["sampler=hvs"]).sampler
     assert (s.name, s.pad_mode, s.pad) == ("hvs", "relative", 0.05)
     assert Config(sampler="hvs").sampler == SamplerConfig(name="hvs")
@@ -213,6 +214,15 @@ def test_old_render_keys_map_to_the_sampler_block(tmp_path):
     assert cfg.sampler.pad == 0.02 and cfg.sampler.as_density is True
     assert cfg.sampler.placement == "endpoint"
     assert config_from_dict(to_dict(cfg)) == cfg
+    assert s.masses == "interpolant"  # what the old code drew from
+
+
+def test_a_block_dumped_before_masses_keeps_the_interpolant():
+    """Runs saved before `sampler.masses` existed resume with the draw they were trained with."""
+    old = to_dict(load_config("demo"))
+    del old["sampler"]["masses"]
+    assert config_from_dict(old).sampler.masses == "interpolant"
+    assert load_config("demo").sampler.masses == "sections"
 
 
 @pytest.mark.parametrize("override, words", [
@@ -221,6 +231,9 @@ def test_old_render_keys_map_to_the_sampler_block(tmp_path):
     (["sampler=l0-inverse", "sampler.kind=linear"], ["contradicts"]),
     (["sampler.pad_mode=fraction"], ["sampler.pad_mode", "relative"]),
     (["sampler.pad=-1"], ["sampler.pad"]),
+    (["sampler.pad=0.05"], ["sampler.pad", "sampler.masses=interpolant"]),
+    (["sampler.blur=true"], ["sampler.blur", "sampler.masses=interpolant"]),
+    (["sampler.masses=pdf"], ["sampler.masses", "sections"]),
     (["sampler.base_inv_s=0"], ["base_inv_s"]),
     (["sampler.name=nope"], ["sampler.name", "nope", "neus-exact"]),
 ])

@@ -19,7 +19,7 @@ from neus_l0.samplers import (
     up_sample,
     upsample_section_weights,
 )
-from neus_l0.sampling import sample_l0
+from neus_l0.sampling import sample_l0, sample_l0_sections
 
 
 def _sections(B: int = 6, N: int = 17, seed: int = 0) -> Sections:
@@ -62,9 +62,9 @@ def test_sections_of_a_plane_are_its_linear_sdf():
 def test_relative_pad_does_not_depend_on_the_weights_scale():
     sec = _sections()
     small = Sections(sec.z, sec.weights * 1e-3, sec.prev_sdf, sec.next_sdf, sec.inv_s)
-    rel = L0Sampler(pad=0.01, pad_mode="relative")
+    rel = L0Sampler(pad=0.01, pad_mode="relative", masses="interpolant")
     torch.testing.assert_close(rel.draw(small, 16), rel.draw(sec, 16))
-    ab = L0Sampler(pad=0.01, pad_mode="absolute")
+    ab = L0Sampler(pad=0.01, pad_mode="absolute", masses="interpolant")
     assert not torch.allclose(ab.draw(small, 16), ab.draw(sec, 16))
 
 
@@ -75,24 +75,26 @@ def test_relative_pad_holds_a_bounded_share():
     w[0, 30] = 0.9
     sec = Sections(z, w, torch.zeros_like(w), torch.zeros_like(w), 64.0)
     for pad in (0.01, 0.1):
-        s = L0Sampler(pad=pad, pad_mode="relative", blur=True).draw(sec, 2000)
+        s = L0Sampler(pad=pad, pad_mode="relative", blur=True, masses="interpolant").draw(sec, 2000)
         away = ((s < z[0, 28]) | (s > z[0, 33])).float().mean().item()
         assert 0.0 < away <= pad / (1 + pad)
-    none = L0Sampler(pad=0.5, pad_mode="none").draw(sec, 64)
-    torch.testing.assert_close(none, L0Sampler(pad=0.0).draw(sec, 64))
+    none = L0Sampler(pad=0.5, pad_mode="none", masses="interpolant").draw(sec, 64)
+    torch.testing.assert_close(none, L0Sampler(pad=0.0, masses="interpolant").draw(sec, 64))
 
 
 def test_l0_sampler_is_sample_l0_on_point_weights():
     sec = _sections()
     s = L0Sampler(kind="inverse", pad=0.002, pad_mode="absolute", blur=True,
-                  placement="endpoint", as_density=False)
+                  placement="endpoint", as_density=False, masses="interpolant")
     t, w = s.point_weights(sec)
     assert t.shape == sec.z.shape
     torch.testing.assert_close(s.draw(sec, 12), sample_l0(t, w, 12, kind="inverse", pad=0.002))
-    plain = L0Sampler()  # the default: no maxblur, no pad
+    plain = L0Sampler(masses="interpolant")  # the paper's draw: no maxblur, no pad
     t, w = plain.point_weights(sec)
     torch.testing.assert_close(plain.draw(sec, 12), sample_l0(t, w, 12, blur=False))
-    padded = L0Sampler(pad=0.05, pad_mode="absolute")  # without blur the pad is added
+    default = L0Sampler()  # the default: section masses, the interpolant inside
+    torch.testing.assert_close(default.draw(sec, 12), sample_l0_sections(sec.z, sec.weights, 12))
+    padded = L0Sampler(pad=0.05, pad_mode="absolute", masses="interpolant")  # without blur the pad is added
     t, w = padded.point_weights(sec)
     torch.testing.assert_close(w, section_to_point_weights(sec.z, sec.weights)[1] + 0.05)
 

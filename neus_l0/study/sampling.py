@@ -51,18 +51,25 @@ FINAL_S = 512.0
 #: Samples per ray of the dense reference.
 DENSE = 4096
 #: The L0 default before this study: maxblur with the authors' absolute pad 0.001.
-_BLUR = SamplerConfig(name="l0", blur=True, pad=0.001, pad_mode="absolute")
-#: The variants compared: label -> sampler settings (labels without "blur": maxblur off).
+_BLUR = SamplerConfig(name="l0", blur=True, pad=0.001, pad_mode="absolute",
+                      masses="interpolant")
+#: The paper's draw without maxblur (the L0 default between the first study and `masses`).
+_INTERP = SamplerConfig(name="l0", masses="interpolant")
+#: The variants compared: label -> sampler settings ("interp": the interpolant's masses, the
+#: paper's draw; labels without "blur": maxblur off; bare L0 names: the default, `sections`).
 VARIANTS: dict[str, SamplerConfig] = {
     "hvs": SamplerConfig(name="hvs"),
     "neus-exact": SamplerConfig(name="neus-exact"),
-    "l0": SamplerConfig(name="l0"),  # the default: no maxblur, no pad
-    "l0 rel.01": SamplerConfig(name="l0", pad=0.01, pad_mode="relative"),
-    "l0 endpoint": SamplerConfig(name="l0", placement="endpoint"),
-    "l0 nodensity": SamplerConfig(name="l0", as_density=False),
+    "l0": SamplerConfig(name="l0"),  # the default: section masses, exponential inside
     "l0-inverse": SamplerConfig(name="l0-inverse"),
     "l0-linear": SamplerConfig(name="l0-linear"),
-    "l0 blur abs.001": _BLUR,  # the default before the study
+    "l0 interp": _INTERP,
+    "l0 interp rel.01": dataclasses.replace(_INTERP, pad=0.01, pad_mode="relative"),
+    "l0 interp endpoint": dataclasses.replace(_INTERP, placement="endpoint"),
+    "l0 interp nodensity": dataclasses.replace(_INTERP, as_density=False),
+    "l0-inverse interp": dataclasses.replace(_INTERP, name="l0-inverse"),
+    "l0-linear interp": dataclasses.replace(_INTERP, name="l0-linear"),
+    "l0 blur abs.001": _BLUR,  # the default before the first study
     "l0 blur abs.01": dataclasses.replace(_BLUR, pad=0.01),
     "l0 blur nopad": dataclasses.replace(_BLUR, pad_mode="none"),
     "l0 blur rel.01": dataclasses.replace(_BLUR, pad=0.01, pad_mode="relative"),
