@@ -94,7 +94,8 @@ def test_l0_sampler_is_sample_l0_on_point_weights():
     torch.testing.assert_close(plain.draw(sec, 12), sample_l0(t, w, 12, blur=False))
     default = L0Sampler()  # the default: section masses, the interpolant inside
     torch.testing.assert_close(default.draw(sec, 12), sample_l0_sections(sec.z, sec.weights, 12))
-    padded = L0Sampler(pad=0.05, pad_mode="absolute", masses="interpolant")  # without blur the pad is added
+    # without blur the pad is added
+    padded = L0Sampler(pad=0.05, pad_mode="absolute", masses="interpolant")
     t, w = padded.point_weights(sec)
     torch.testing.assert_close(w, section_to_point_weights(sec.z, sec.weights)[1] + 0.05)
 
