@@ -351,15 +351,30 @@ def _fused_exp(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
     """
     E, L = _growth(a, b, zeros)
     mass = (a * E).div_(L).mul_(d)  # a == 0 or b == 0: E = -1, L = -inf, mass 0
+    return _draw_exp(E, L, mass, d, t_lo, u, zeros)
+
+
+def _draw_exp(E: Tensor, L: Tensor, mass: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
+              zeros: bool) -> Tensor:
+    """The inverse transform of exponential pieces given their growth and masses.
+
+    Args:
+        E, L: (R, M) growths (`_growth`). mass: (R, M) piece masses. d: (R, M) lengths.
+        t_lo: (R, M) starts. u: (R, n) sorted quantiles.
+        zeros: whether a piece can have a zero end.
+
+    Returns:
+        (R, n) positions, sorted up to rounding.
+    """
     lo, hi, degenerate = _cdf(mass, d)
     if zeros:  # else a ray without mass has only zero-length pieces: any E, L will do
         E, L = _make_flat(E, L, degenerate)  # uniform fallback: constant pieces
     idx = _locate(hi, u)
     # alpha = E / width folds q = (u - lo) / width into one product per sample.
-    fmax = torch.finfo(a.dtype).max
+    fmax = torch.finfo(E.dtype).max
     alpha = (E * _inverse_width(lo, hi)).clamp_(-fmax, fmax)  # E, 1/width finite: no NaN
     y = (u - torch.gather(lo, -1, idx)).mul_(torch.gather(alpha, -1, idx))  # q E
-    x = torch.log1p(y.clamp_(min=-1.0 + torch.finfo(a.dtype).eps))
+    x = torch.log1p(y.clamp_(min=-1.0 + torch.finfo(E.dtype).eps))
     return torch.addcmul(torch.gather(t_lo, -1, idx), x, torch.gather(d / L, -1, idx))
 
 
@@ -646,23 +661,79 @@ def sample_l0_sections(z: Tensor, weights: Tensor, n_samples: int, kind: str = "
     batch = z.shape[:-1]
     z = z.detach().reshape(-1, N)  # (R, N)
     w = _prepare_weights(weights.reshape(-1, N - 1), z.dtype, False, 0.0)  # (R, M)
-    d = (z[:, 1:] - z[:, :-1]).clamp_min(0)  # (R, M)
-    floor = 1e-3 * d.mean(dim=-1, keepdim=True)
-    rho = w / torch.maximum(d, floor).clamp_min(torch.finfo(z.dtype).tiny)  # (R, M)
-    g = _boundary_values(rho, d, kind)  # (R, M+1)
-    lo, hi, degenerate = _cdf(w, d)
     u = quantiles((z.shape[0],), n_samples, det, generator, z.dtype, z.device)  # (R, n)
-    idx = _locate(hi, u)
-    q = _fraction(u, lo, _inverse_width(lo, hi), idx)  # (R, n) fraction inside the section
-    a, c, b = torch.gather(g, -1, idx), torch.gather(rho, -1, idx), torch.gather(g, -1, idx + 1)
-    m1, m2 = piece_mass(a, c, kind), piece_mass(c, b, kind)  # (R, n) half-piece masses
-    total = m1 + m2
-    r = q * total
-    first = r < m1
-    q1 = torch.where(first, r / torch.where(m1 > 0, m1, 1.0), 0.0).clamp(0.0, 1.0)
-    q2 = torch.where(first, 0.0, (r - m1) / torch.where(m2 > 0, m2, 1.0)).clamp(0.0, 1.0)
-    s = torch.where(first, 0.5 * piece_inverse_cdf(a, c, q1, kind),
-                    0.5 + 0.5 * piece_inverse_cdf(c, b, q2, kind))
-    s = torch.where((total > 0) & ~degenerate, s, q)
-    out = torch.addcmul(torch.gather(z[:, :-1], -1, idx), s, torch.gather(d, -1, idx))
+    if kind == "exp":
+        out = _sections_exp(z, w, u)
+    else:
+        a, b, d, t_lo = _half_pieces(z, w, kind)  # (R, 2M) each
+        out = {"inverse": _fused_inverse, "linear": _fused_linear}[kind](a, b, d, t_lo, u, True)
     return _finish(out, z).reshape(*batch, n_samples)
+
+
+def _section_geometry(z: Tensor, w: Tensor, kind: str) -> tuple[Tensor, Tensor, Tensor]:
+    """Section lengths d (R, M), densities rho (R, M, max 1) and end values g (R, M+1)."""
+    d = (z[:, 1:] - z[:, :-1]).clamp_min(0)  # (R, M)
+    tiny = torch.finfo(z.dtype).tiny
+    rho = w / torch.maximum(d, 1e-3 * d.mean(dim=-1, keepdim=True)).clamp_min(tiny)
+    rho = rho / rho.amax(dim=-1, keepdim=True).clamp_min(tiny)
+    rho = rho.masked_fill_(rho < tiny, 0.0)  # {0} U [tiny, 1], as `_growth` expects
+    return d, rho, _boundary_values(rho, d, kind)
+
+
+def _sections_exp(z: Tensor, w: Tensor, u: Tensor) -> Tensor:
+    """`sample_l0_sections` for the exponential kind, fused: the growths are computed once.
+
+    A piece's growth (E, L) does not change when the piece is scaled, so the half pieces'
+    masses are rescaled to the section weights without recomputing them.
+
+    Args:
+        z: (R, M+1) section ends. w: (R, M) prepared weights. u: (R, n) quantiles.
+
+    Returns:
+        (R, n) positions, sorted up to rounding.
+    """
+    R, M = w.shape
+    d, rho, g = _section_geometry(z, w, "exp")
+    a = torch.stack([g[:, :-1], rho], dim=-1).reshape(R, 2 * M)  # half pieces, in order
+    b = torch.stack([rho, g[:, 1:]], dim=-1).reshape(R, 2 * M)
+    E, L = _growth(a, b, True)
+    half = (0.5 * d).repeat_interleave(2, dim=-1)  # (R, 2M)
+    mass = (a * E).div_(L).mul_(half).reshape(R, M, 2)  # the interpolant's masses
+    inner = mass.sum(dim=-1, keepdim=True)  # (R, M, 1)
+    empty = inner <= 0  # no interpolant mass (a zero end): constant at the density
+    mass = torch.where(empty, 0.5, mass / torch.where(empty, 1.0, inner)).mul_(w[..., None])
+    flat = empty.expand(R, M, 2).reshape(R, 2 * M)
+    E, L = E.masked_fill(flat, _flat(E.dtype)), L.masked_fill(flat, _flat(E.dtype))
+    t_lo = torch.stack([z[:, :-1], z[:, :-1] + 0.5 * d], dim=-1).reshape(R, 2 * M)
+    return _draw_exp(E, L, mass.reshape(R, 2 * M), half, t_lo, u, True)
+
+
+def _half_pieces(z: Tensor, w: Tensor, kind: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The two pieces of each section, scaled so that the section's mass is its weight.
+
+    Section j, ``[z_j, z_{j+1}]`` with midpoint ``m_j``, becomes the pieces ``[z_j, m_j]``
+    (from ``g_j`` to ``rho_j``) and ``[m_j, z_{j+1}]`` (from ``rho_j`` to ``g_{j+1}``), both
+    multiplied by ``w_j`` over the interpolant's mass of the section (a scale changes no
+    shape). A section with weight whose pieces carry no mass (an exponential or inverse piece
+    with a zero end) becomes constant at its density.
+
+    Args:
+        z: (R, M+1) sorted section ends. w: (R, M) prepared section weights.
+        kind: ``exp``, ``inverse`` or ``linear``.
+
+    Returns:
+        a, b, d, t_lo: (R, 2M) piece start and end values, lengths and starts, in order.
+    """
+    d, rho, g = _section_geometry(z, w, kind)
+    inner = (piece_mass(g[:, :-1], rho, kind) + piece_mass(rho, g[:, 1:], kind)) * (0.5 * d)
+    scale = torch.where(inner > 0, w / torch.where(inner > 0, inner, 1.0), 0.0)  # (R, M)
+    flat = (inner <= 0) & (w > 0)
+    lo_v = torch.where(flat, rho, g[:, :-1] * scale)
+    mid_v = torch.where(flat, rho, rho * scale)
+    hi_v = torch.where(flat, rho, g[:, 1:] * scale)
+    a = torch.stack([lo_v, mid_v], dim=-1).flatten(-2)  # (R, 2M)
+    b = torch.stack([mid_v, hi_v], dim=-1).flatten(-2)
+    half = 0.5 * d
+    d2 = torch.stack([half, half], dim=-1).flatten(-2)
+    t_lo = torch.stack([z[:, :-1], z[:, :-1] + half], dim=-1).flatten(-2)
+    return a, b, d2, t_lo
