@@ -68,7 +68,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
-    "KINDS", "maxblur", "neus_section_inverse_cdf", "piece_inverse_cdf", "piece_mass",
+    "KINDS", "maxblur", "neus_section_inverse_cdf", "l0_section_pieces", "piece_inverse_cdf",
+    "piece_mass",
     "quantiles", "sample_l0", "sample_l0_sections", "sample_neus_sections", "sample_pdf",
     "sanitize_weights",
 ]
@@ -706,6 +707,24 @@ def _sections_exp(z: Tensor, w: Tensor, u: Tensor) -> Tensor:
     E, L = E.masked_fill(flat, _flat(E.dtype)), L.masked_fill(flat, _flat(E.dtype))
     t_lo = torch.stack([z[:, :-1], z[:, :-1] + 0.5 * d], dim=-1).reshape(R, 2 * M)
     return _draw_exp(E, L, mass.reshape(R, 2 * M), half, t_lo, u, True)
+
+
+def l0_section_pieces(z: Tensor, weights: Tensor, kind: str = "exp"
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The pieces `sample_l0_sections` draws from, for plots: two per section, in order.
+
+    Args:
+        z: (R, N) sorted section ends. weights: (R, N-1) section weights (any values).
+        kind: ``exp``, ``inverse`` or ``linear``.
+
+    Returns:
+        a, b, d, t_lo: (R, 2(N-1)) each piece's density at its start and end (the densities
+        integrate to the prepared weights: each ray's weights over their maximum), its length
+        and its start.
+    """
+    z = z.detach()
+    w = _prepare_weights(weights.reshape(z.shape[0], -1), z.dtype, False, 0.0)
+    return _half_pieces(z, w, kind)
 
 
 def _half_pieces(z: Tensor, w: Tensor, kind: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:

@@ -191,3 +191,16 @@ def test_pit_ray_hits_the_true_surface_inside_the_pit(bench):
     assert np.linalg.norm(hit - ray.feature["center"]) <= 1.5 * ray.feature["radius"]
     info = json.loads((scene_dir / "features.json").read_text())
     assert ray.feature["name"] in {f["name"] for f in info["features"]}
+
+
+def test_section_pieces_curve_gives_each_section_its_weight():
+    """The plotted L0 density of the default draw: mass 1, each section its weight's share."""
+    from neus_l0.figures.ray_weights import section_pieces_curve
+    from neus_l0.sampling import l0_section_pieces
+
+    z = torch.tensor([[0.0, 0.4, 0.5, 0.9, 1.0]], dtype=torch.float64)
+    w = torch.tensor([[0.1, 0.5, 0.3, 0.1]], dtype=torch.float64)
+    x, pdf = section_pieces_curve(*l0_section_pieces(z, w), per_piece=4001)
+    x, pdf = x.reshape(8, -1), pdf.reshape(8, -1)  # two pieces per section
+    piece = (0.5 * (pdf[:, 1:] + pdf[:, :-1]) * (x[:, 1:] - x[:, :-1])).sum(-1)
+    torch.testing.assert_close(piece.reshape(4, 2).sum(-1), w[0] / w.sum(), atol=1e-6, rtol=0)

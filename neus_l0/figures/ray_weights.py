@@ -162,6 +162,28 @@ def exp_interpolation(t: torch.Tensor, w: torch.Tensor,
     return x.reshape(-1), (y / mass).reshape(-1)
 
 
+def section_pieces_curve(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor, t_lo: torch.Tensor,
+                         per_piece: int = CURVE_POINTS // 2
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The exponential pieces of `neus_l0.sampling.l0_section_pieces`, normalised to mass 1.
+
+    Args:
+        a, b, d, t_lo: (1, K) piece start / end densities, lengths and starts.
+        per_piece: points per piece.
+
+    Returns:
+        x, pdf: K * per_piece positions and densities.
+    """
+    from neus_l0.sampling import piece_mass
+
+    a, b, d, t_lo = a[0], b[0], d[0], t_lo[0]  # (K,)
+    mass = (piece_mass(a, b, "exp") * d).sum().clamp_min(1e-300)
+    s = torch.linspace(0.0, 1.0, per_piece, dtype=a.dtype)  # (P,)
+    ratio = torch.where(a > 0, b / torch.where(a > 0, a, 1.0), 0.0)
+    y = a[:, None] * ratio[:, None] ** s[None]  # (K, P)
+    return (t_lo[:, None] + s[None] * d[:, None]).reshape(-1), (y / mass).reshape(-1)
+
+
 def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
                 scale_mat: np.ndarray, sampler: str) -> RayProfile:
     """Coarse weights, both samplers' densities and draws along one world-unit ray.
@@ -175,7 +197,7 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
     from neus_l0.data.cameras import to_normalised, world_scale
     from neus_l0.rendering import coarse_z_vals, near_far_from_sphere, render_rays
     from neus_l0.samplers import build_sampler, upsample_section_weights
-    from neus_l0.sampling import maxblur
+    from neus_l0.sampling import l0_section_pieces, maxblur
 
     r, sc = cfg.render, cfg.sampler
     s = world_scale(scale_mat)  # world units per normalised unit along the ray
@@ -192,9 +214,14 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         l0 = build_sampler(dataclasses.replace(sc, name="l0", kind="", compile=False))
         fine = {"hvs": build_sampler("hvs").draw(sections, per_round)[0] * s,
                 "l0": l0.draw(sections, per_round)[0] * s}
-        nodes, pw = l0.point_weights(sections)
-        wb = maxblur(pw, pad=l0.pad)[0].double() if l0.blur else pw[0].double()  # (M,)
-        x, pdf = exp_interpolation(nodes[0].double(), wb)
+        if l0.masses == "sections":  # the section weights' shares, the interpolant inside
+            nodes = 0.5 * (t[:, 1:] + t[:, :-1])
+            wb = (w[0] / (t[0, 1:] - t[0, :-1])).double()  # (M,) section densities
+            x, pdf = section_pieces_curve(*l0_section_pieces(t.double(), w.double()))
+        else:
+            nodes, pw = l0.point_weights(sections)
+            wb = maxblur(pw, pad=l0.pad)[0].double() if l0.blur else pw[0].double()  # (M,)
+            x, pdf = exp_interpolation(nodes[0].double(), wb)
         D = (t[0, 1:] - t[0, :-1]).double()
         hvs = w[0].double() / (w[0].double().sum() * D)
         fine_all = render_rays(model, o, d, r, sampler)["z_fine"][0] if r.n_importance else \
