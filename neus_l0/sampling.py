@@ -698,7 +698,7 @@ def _sections_exp(z: Tensor, w: Tensor, u: Tensor) -> Tensor:
     a = torch.stack([g[:, :-1], rho], dim=-1).reshape(R, 2 * M)  # half pieces, in order
     b = torch.stack([rho, g[:, 1:]], dim=-1).reshape(R, 2 * M)
     E, L = _growth(a, b, True)
-    half = (0.5 * d).repeat_interleave(2, dim=-1)  # (R, 2M)
+    half = (0.5 * d)[..., None].expand(R, M, 2).reshape(R, 2 * M)
     mass = (a * E).div_(L).mul_(half).reshape(R, M, 2)  # the interpolant's masses
     inner = mass.sum(dim=-1, keepdim=True)  # (R, M, 1)
     empty = inner <= 0  # no interpolant mass (a zero end): constant at the density

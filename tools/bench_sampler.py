@@ -5,7 +5,9 @@ Usage:
                                   [--device cpu|cuda|all] [--dtype float32|float64]
                                   [--compile]
 
-Both samplers get the same NeuS-like rays: N sorted positions with a sharp surface peak.
+`sample_l0_sections` (the default `l0` draw) and `sample_neus_sections` (`neus-exact`) get the
+section weights as `sample_pdf` does. All samplers get the same NeuS-like rays: N sorted
+positions with a sharp surface peak.
 ``sample_pdf`` gets the N-1 section weights (bins = the N positions), ``sample_l0`` the N
 point weights, so both draw from the same coarse information. Prints the minimum and median
 time per call and the ratio of minima to ``sample_pdf``, measured side by side, interleaved,
@@ -23,7 +25,7 @@ import time
 
 import torch
 
-from neus_l0.sampling import sample_l0, sample_pdf
+from neus_l0.sampling import sample_l0, sample_l0_sections, sample_neus_sections, sample_pdf  # noqa: E501
 
 
 def make_rays(n_rays: int, n_points: int, device: str, dtype: torch.dtype,
@@ -66,12 +68,16 @@ def bench(device: str, args: argparse.Namespace) -> list[tuple[str, float, float
     """
     dtype = getattr(torch, args.dtype)
     t, w, w_sec = make_rays(args.rays, args.points, device, dtype)
+    sdf = 1.2 - t  # a plane's SDF for neus-exact's estimates (its cost does not depend on them)
     n = args.samples
     fns = {
         "sample_pdf (HVS)": lambda: sample_pdf(t, w_sec, n, det=False),
         "sample_l0 exp": lambda: sample_l0(t, w, n, kind="exp", det=False),
         "sample_l0 inverse": lambda: sample_l0(t, w, n, kind="inverse", det=False),
         "sample_l0 linear": lambda: sample_l0(t, w, n, kind="linear", det=False),
+        "l0 sections (exp)": lambda: sample_l0_sections(t, w_sec, n, det=False),
+        "neus-exact": lambda: sample_neus_sections(t, w_sec, sdf[:, :-1], sdf[:, 1:], 256.0,
+                                                   n, det=False),
     }
     if args.compile:
         c_l0 = torch.compile(sample_l0, dynamic=True)
