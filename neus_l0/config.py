@@ -193,7 +193,10 @@ class OccupancyConfig:
     resolution: int = 64
     """Cells per axis over [-1, 1]^3 (a multiple of `block`)."""
     update_every: int = 16
-    """Training iterations between grid updates (the first update is at iteration 0)."""
+    """Training iterations between grid updates (the first at iteration `start`)."""
+    start: int = 0
+    """No update before this iteration: until then every cell is occupied (nothing is
+    emptied before the SDF has been trained a while)."""
     margin: float = 1.5
     """Slack on the 1-Lipschitz bound: a cell is occupied when |sdf(centre)| <=
     margin * half-diagonal + widths / s."""
@@ -227,6 +230,22 @@ class HullConfig:
 
 
 @dataclass
+class PointBoundConfig:
+    """The oriented box around a `neus-l0 colmap` scene's SfM points (`neus_l0.point_bound`),
+    for scenes without a visual hull. Off by default: on the synthetic scenes exported
+    through pycolmap a margin below 0.2 cut thin parts the SfM points miss, and at 0.2 the
+    box keeps 70-94 % of the sphere (docs/BENCHMARKS.md, "Bounds without masks")."""
+
+    enabled: bool = False
+    """Narrow the rays to the box when the scene folder holds ``sparse_points.npz`` and the
+    run has no visual hull."""
+    margin: float = 0.2
+    """Widening of every face of the points' box, as a fraction of its diagonal."""
+    min_views: int = 2
+    """Least number of views that see a point for it to count."""
+
+
+@dataclass
 class RenderConfig:
     """Sampling along rays and compositing (NeuS's `neus_renderer` block)."""
 
@@ -252,6 +271,8 @@ class RenderConfig:
     """The occupancy grid (off by default)."""
     hull: HullConfig = field(default_factory=HullConfig)
     """The visual hull (on when the scene has masks)."""
+    point_bound: PointBoundConfig = field(default_factory=PointBoundConfig)
+    """The SfM points' box of a colmap scene without a hull (off by default)."""
 
 
 @dataclass(eq=False)
@@ -547,6 +568,8 @@ def _validate(obj: Any, prefix: str) -> None:
                     raise bad(name, "must be > 0")
             if obj.start_level is not None and obj.start_level < 0:
                 raise bad("start_level", "must be >= 0 (or null: all levels)")
+    if isinstance(obj, PointBoundConfig) and not (obj.margin >= 0 and obj.min_views >= 2):
+        raise bad("margin", "margin must be >= 0 and min_views >= 2")
     if isinstance(obj, HullConfig):
         if obj.resolution < 8:
             raise bad("resolution", "must be >= 8 cells per axis")
@@ -570,8 +593,8 @@ def _validate(obj: Any, prefix: str) -> None:
         if obj.block < 1 or obj.resolution < 1 or obj.resolution % obj.block:
             raise bad("resolution", f"{obj.resolution} must be a positive multiple of "
                       f"block={obj.block}")
-        if obj.update_every < 1 or obj.hold < 0:
-            raise bad("update_every", "update_every must be >= 1 and hold >= 0")
+        if obj.update_every < 1 or obj.hold < 0 or obj.start < 0:
+            raise bad("update_every", "update_every must be >= 1, hold and start >= 0")
         if obj.margin < 1.0 or obj.widths < 0.0:
             raise bad("margin", "margin must be >= 1 and widths >= 0")
     if isinstance(obj, TrainConfig):
