@@ -185,14 +185,19 @@ class OccupancyConfig:
     """Occupancy grid that keeps coarse samples out of empty space (`neus_l0.occupancy`).
 
     Off in `wmask` / `womask` (which reproduce NeuS). When on, rays that miss the unit
-    sphere or cross no occupied cell get no samples and no network work, and the coarse
-    samples of the others lie in the span [first occupied, last occupied] along the ray."""
+    sphere or cross no occupied cell get zero opacity, and the coarse samples of the others
+    lie in the span [first occupied, last occupied] along the ray. Measured on the CPU
+    without masks (docs/BENCHMARKS.md, "Bounds without masks"): 32^3 updated every 128
+    steps costs under 1 % of a step, but batches keep their shape, so it saves no network
+    work, and it moved only 1.07x the coarse samples toward the surface; early in training
+    it left out a few % of the true surface (it follows the network's SDF)."""
 
     enabled: bool = False
     """Use the grid in training and rendering."""
-    resolution: int = 64
-    """Cells per axis over [-1, 1]^3 (a multiple of `block`)."""
-    update_every: int = 16
+    resolution: int = 32
+    """Cells per axis over [-1, 1]^3 (a multiple of `block`). 32 (was 64): an update costs
+    a tenth, and early in training it left out less of the true surface (BENCHMARKS.md)."""
+    update_every: int = 128
     """Training iterations between grid updates (the first at iteration `start`)."""
     start: int = 0
     """No update before this iteration: until then every cell is occupied (nothing is

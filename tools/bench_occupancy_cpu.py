@@ -4,6 +4,8 @@ Usage:
     python tools/bench_occupancy_cpu.py [--conf demo] [--warm 300 1000] [--steps 10]
         [--rounds 3] [--rays 1024] [--variants 64:16 32:64 32:128 32:256] [override ...]
 
+A variant is RES:EVERY[:WIDTHS] (resolution, update_every, and `widths`, default 6).
+
 Builds the built-in ``demo`` scene (8 views, 100 x 75, with its ground truth), trains the
 config without masks (default overrides: ``train.mask_weight=0``, a small background model,
 ``render.n_outside=16``: the womask path) and, at each ``--warm`` iteration count, for each
@@ -70,10 +72,10 @@ def near_fraction(scene, surface, size, o, d, bounds) -> float:
     return float((surface(pts * sm[0, 0] + sm[:3, 3]) < 0.02 * size).mean())
 
 
-def measure_grid(model, cfg, res, every, truth) -> dict:
+def measure_grid(model, cfg, res, every, truth, widths=6.0) -> dict:
     """Update time and points, occupancy, safety and sample placement of one grid."""
     scene, surface, size, gt_unit, o, d = truth
-    gcfg = OccupancyConfig(enabled=True, resolution=res, update_every=every)
+    gcfg = OccupancyConfig(enabled=True, resolution=res, update_every=every, widths=widths)
     grid = OccupancyGrid(gcfg)
     calls = {"points": 0}
 
@@ -125,7 +127,8 @@ def main() -> None:
     it = 0
     print(f"# {datetime.date.today()} torch {torch.__version__} threads 1 load "
           f"{os.getloadavg()[0]:.1f}; conf {args.conf} {' '.join(WOMASK + args.overrides)}")
-    print("| warm its | 1/s | grid R:every | update (ms) | SDF points / update | update share "
+    print("| warm its | 1/s | grid R:every[:widths] | update (ms) | SDF points / update "
+          "| update share "
           "of a step | step without update (x no grid) | occupied cells | true surface in "
           "grid | coarse samples near surface (sphere chord) |")
     print("|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|")
@@ -134,7 +137,8 @@ def main() -> None:
             train_step(model, opt, scene, cfg, it, gen, setup=setup)
             it += 1
         near_sphere = near_fraction(scene, surface, size, o, d, ())
-        grids = {v: measure_grid(model, cfg, *map(int, v.split(":")), truth)
+        grids = {v: measure_grid(model, cfg, *map(int, v.split(":")[:2]), truth,
+                                 *map(float, v.split(":")[2:]))
                  for v in args.variants}
         frozen = copy.deepcopy(cfg)
         frozen.render.occupancy.start = 10**9  # the timed steps never update the grid
