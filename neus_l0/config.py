@@ -185,15 +185,23 @@ class OccupancyConfig:
     """Occupancy grid that keeps coarse samples out of empty space (`neus_l0.occupancy`).
 
     Off in `wmask` / `womask` (which reproduce NeuS). When on, rays that miss the unit
-    sphere or cross no occupied cell get no samples and no network work, and the coarse
-    samples of the others lie in the span [first occupied, last occupied] along the ray."""
+    sphere or cross no occupied cell get zero opacity, and the coarse samples of the others
+    lie in the span [first occupied, last occupied] along the ray. Measured on the CPU
+    without masks (docs/BENCHMARKS.md, "Bounds without masks"): 32^3 updated every 128
+    steps costs under 1 % of a step, but batches keep their shape, so it saves no network
+    work, and it moved only 1.07x the coarse samples toward the surface; early in training
+    it left out a few % of the true surface (it follows the network's SDF)."""
 
     enabled: bool = False
     """Use the grid in training and rendering."""
-    resolution: int = 64
-    """Cells per axis over [-1, 1]^3 (a multiple of `block`)."""
-    update_every: int = 16
-    """Training iterations between grid updates (the first update is at iteration 0)."""
+    resolution: int = 32
+    """Cells per axis over [-1, 1]^3 (a multiple of `block`). 32 (was 64): an update costs
+    a tenth, and early in training it left out less of the true surface (BENCHMARKS.md)."""
+    update_every: int = 128
+    """Training iterations between grid updates (the first at iteration `start`)."""
+    start: int = 0
+    """No update before this iteration: until then every cell is occupied (nothing is
+    emptied before the SDF has been trained a while)."""
     margin: float = 1.5
     """Slack on the 1-Lipschitz bound: a cell is occupied when |sdf(centre)| <=
     margin * half-diagonal + widths / s."""
@@ -227,6 +235,22 @@ class HullConfig:
 
 
 @dataclass
+class PointBoundConfig:
+    """The oriented box around a `neus-l0 colmap` scene's SfM points (`neus_l0.point_bound`),
+    for scenes without a visual hull. Off by default: on the synthetic scenes exported
+    through pycolmap a margin below 0.2 cut thin parts the SfM points miss, and at 0.2 the
+    box keeps 70-94 % of the sphere (docs/BENCHMARKS.md, "Bounds without masks")."""
+
+    enabled: bool = False
+    """Narrow the rays to the box when the scene folder holds ``sparse_points.npz`` and the
+    run has no visual hull."""
+    margin: float = 0.2
+    """Widening of every face of the points' box, as a fraction of its diagonal."""
+    min_views: int = 2
+    """Least number of views that see a point for it to count."""
+
+
+@dataclass
 class RenderConfig:
     """Sampling along rays and compositing (NeuS's `neus_renderer` block)."""
 
@@ -252,6 +276,8 @@ class RenderConfig:
     """The occupancy grid (off by default)."""
     hull: HullConfig = field(default_factory=HullConfig)
     """The visual hull (on when the scene has masks)."""
+    point_bound: PointBoundConfig = field(default_factory=PointBoundConfig)
+    """The SfM points' box of a colmap scene without a hull (off by default)."""
 
 
 @dataclass(eq=False)
@@ -562,6 +588,8 @@ def _validate(obj: Any, prefix: str) -> None:
                     raise bad(name, "must be > 0")
             if obj.start_level is not None and obj.start_level < 0:
                 raise bad("start_level", "must be >= 0 (or null: all levels)")
+    if isinstance(obj, PointBoundConfig) and not (obj.margin >= 0 and obj.min_views >= 2):
+        raise bad("margin", "margin must be >= 0 and min_views >= 2")
     if isinstance(obj, HullConfig):
         if obj.resolution < 8:
             raise bad("resolution", "must be >= 8 cells per axis")
@@ -585,8 +613,8 @@ def _validate(obj: Any, prefix: str) -> None:
         if obj.block < 1 or obj.resolution < 1 or obj.resolution % obj.block:
             raise bad("resolution", f"{obj.resolution} must be a positive multiple of "
                       f"block={obj.block}")
-        if obj.update_every < 1 or obj.hold < 0:
-            raise bad("update_every", "update_every must be >= 1 and hold >= 0")
+        if obj.update_every < 1 or obj.hold < 0 or obj.start < 0:
+            raise bad("update_every", "update_every must be >= 1, hold and start >= 0")
         if obj.margin < 1.0 or obj.widths < 0.0:
             raise bad("margin", "margin must be >= 1 and widths >= 0")
     if isinstance(obj, TrainConfig):

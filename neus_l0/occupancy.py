@@ -214,6 +214,15 @@ class OccupancyGrid(torch.nn.Module):
         """`ray_spans` on this grid (the `neus_l0.rendering.RayBounds` protocol)."""
         return ray_spans(self.occ_dilated, origins, dirs, near, far)
 
+    def contains(self, points: Tensor) -> Tensor:
+        """(..., 3) normalised points -> (...) bool: in a cell of the dilated grid (what
+        rays look up); False outside ``[-1, 1]^3``."""
+        R = self.cfg.resolution
+        ijk = torch.floor((points + 1.0) * (R / 2.0)).long()
+        inside = ((ijk >= 0) & (ijk < R)).all(dim=-1)
+        ijk = ijk.clamp(0, R - 1)
+        return self.occ_dilated[ijk[..., 0], ijk[..., 1], ijk[..., 2]] & inside
+
     def fraction_occupied(self) -> Tensor:
         """() fraction of occupied cells (a tensor: read it when logging)."""
         return self.occ.float().mean()

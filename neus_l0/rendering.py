@@ -442,8 +442,12 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     fg = _foreground(model, origins, dirs, near, far, cfg, sampler, cos_anneal_ratio,
                      noise, create_graph)
     keep = active[:, None].to(fg["alpha"].dtype)  # (B, 1)
+    bg_from = far  # where the background model's samples start
     if bounds:  # the stretch skipped before the hull or grid (`entry_alpha`)
-        skipped = (near - sphere_chord(origins, dirs)[0])[:, 0].clamp_min(0.0)  # (B,)
+        chord_in, chord_out, _ = sphere_chord(origins, dirs)
+        # the background starts where the sphere ends, never inside a narrowed interval
+        bg_from = torch.maximum(far, chord_out)
+        skipped = (near - chord_in)[:, 0].clamp_min(0.0)  # (B,)
         enter = entry_alpha(fg["entry_sdf"], fg["entry_slope"], skipped, fg["inv_s"])
         # the skipped stretch and the first section share the first sample's colour
         first = 1.0 - (1.0 - enter[:, None]) * (1.0 - fg["alpha"][:, :1])
@@ -456,7 +460,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     eikonal_mask = ((pts_norm < 1.2) & active[:, None]).to(keep.dtype).detach()
     use_bg = cfg.n_outside > 0 and model.background is not None
     if use_bg:
-        alpha, rgb = _with_background(model, origins, dirs, fg, inside, far, cfg, noise)
+        alpha, rgb = _with_background(model, origins, dirs, fg, inside, bg_from, cfg, noise)
     else:
         alpha, rgb = fg["alpha"], fg["rgb"]
 

@@ -63,6 +63,7 @@ from neus_l0.interrupt import StopOnSignal
 from neus_l0.losses import eikonal_indices, neus_loss
 from neus_l0.occupancy import OccupancyGrid
 from neus_l0.pixel_pool import PixelPool, reachable_pixels
+from neus_l0.point_bound import PointBound
 from neus_l0.rendering import RenderNoise, draw_noise, render_rays
 from neus_l0.runlock import RunLock
 from neus_l0.samplers import build_sampler
@@ -151,8 +152,10 @@ def make_occupancy(cfg: Config, device: torch.device | str) -> OccupancyGrid | N
 
 def update_occupancy(grid: OccupancyGrid | None, model: NeuSModel, cfg: Config,
                      iteration: int) -> None:
-    """Re-test the grid every `render.occupancy.update_every` iterations (from 0)."""
-    if grid is not None and iteration % cfg.render.occupancy.update_every == 0:
+    """Re-test the grid every `render.occupancy.update_every` iterations from
+    `render.occupancy.start` on (before it every cell stays occupied)."""
+    c = cfg.render.occupancy
+    if grid is not None and iteration >= c.start and (iteration - c.start) % c.update_every == 0:
         grid.update(model.sdf.sdf, model.variance.inv_s())
 
 
@@ -471,16 +474,24 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
 
 
 def run_hull(scene: Scene, cfg: Config, run_dir: Path) -> tuple:
-    """The run's visual hull as a bounds tuple (empty without masks or when it is off).
+    """The run's static bounds: its visual hull, or without one the SfM point box.
 
-    Carved at the first start and saved as ``RUN/hull.pt``; a resume loads that file. Each
-    warning of the carving (a suspicious mask, named) is one line on stderr.
+    The hull exists only when the scene has masks and `render.hull.enabled` (views without
+    masks carve nothing): carved at the first start and saved as ``RUN/hull.pt``; a resume
+    loads that file. Each warning of the carving (a suspicious mask, named) is one line on
+    stderr. Without a hull, `render.point_bound.enabled` and a ``sparse_points.npz`` in the
+    scene folder (`neus-l0 colmap`) give the points' box (`neus_l0.point_bound`); else ().
     """
-    h = cfg.render.hull
-    if not (h.enabled and scene.has_masks):
-        return ()
     import sys
 
+    h = cfg.render.hull
+    if not (h.enabled and scene.has_masks):
+        p = cfg.render.point_bound
+        box = PointBound.for_scene(scene, p.margin, p.min_views) if p.enabled else None
+        if box is None:
+            return ()
+        print(f"neus-l0: {box.describe()}", file=sys.stderr, flush=True)
+        return (box,)
     from neus_l0.hull import hull_for_run
 
     run_dir.mkdir(parents=True, exist_ok=True)

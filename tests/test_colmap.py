@@ -186,3 +186,34 @@ def test_check_models_rules():
         check_models([a], 30, "photos")
     with pytest.raises(NeusL0Error, match="registered no photos"):
         check_models([], 5, "photos")
+
+
+def test_export_writes_the_sparse_points_and_their_box_holds_the_surface(tiny_scene, tmp_path):
+    import torch
+
+    from neus_l0.point_bound import POINTS_FILE, PointBound, read_points
+    from neus_l0.rendering import sphere_chord
+
+    _true_text_model(tiny_scene, tmp_path / "sparse", list(range(8)))
+    model = read_model(tmp_path / "sparse")
+    out = tmp_path / "scene"
+    assert main(["colmap", str(tiny_scene / "image"), str(out), "--sparse",
+                 str(tmp_path / "sparse"), "--no-progress"]) == 0
+    scene = load_scene(out)
+    sm = np.asarray(scene.scale_mat)
+    pts, track = read_points(out / POINTS_FILE, sm)
+    np.testing.assert_allclose(pts * sm[0, 0] + sm[:3, 3], model.points, atol=1e-9)
+    assert len(track) == len(model.points)
+    box = PointBound.for_scene(scene, margin=0.2)
+    gt = np.asarray(__import__("trimesh").load(tiny_scene / "gt_points.ply",
+                                               process=False).vertices)
+    gt = torch.as_tensor((gt - sm[:3, 3]) / sm[0, 0], dtype=torch.float32)  # (P, 3)
+    assert bool(box.contains(gt).all())
+    # every camera's ray through a true surface point keeps that point inside its bounds
+    for v in range(scene.n_views):
+        o = scene.c2w[v, :3, 3].expand(len(gt), 3)
+        t = (gt - o).norm(dim=-1, keepdim=True)
+        d = (gt - o) / t
+        near, far, _ = sphere_chord(o, d)
+        lo, hi, hits = box.ray_bounds(o, d, near, far)
+        assert bool(hits.all()) and bool(((lo <= t + 1e-5) & (t <= hi + 1e-5)).all())

@@ -24,6 +24,7 @@ from neus_l0.atomic import atomic_write, atomic_write_png, atomic_write_text
 from neus_l0.data.cameras import projection_matrix, sphere_scale_mat
 from neus_l0.errors import NeusL0Error
 from neus_l0.photos.sparse_io import SparseModel
+from neus_l0.point_bound import POINTS_FILE, write_points
 
 #: COLMAP models without distortion parameters (copied without resampling).
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
@@ -171,7 +172,9 @@ def export_scene(out: str | Path, model: SparseModel, photo_dir: str | Path,
     """Write the registered views of `model` as a NeuS-format scene in `out`.
 
     Writes ``image/NNN.png``, ``mask/NNN.png`` (3-channel 0/255, when `masks` is given),
-    ``cameras_sphere.npz`` and ``sources.txt`` (one source photo per line, view order).
+    ``cameras_sphere.npz``, ``sources.txt`` (one source photo per line, view order) and
+    ``sparse_points.npz`` (the SfM points in world units and their track lengths, for
+    `neus_l0.point_bound`).
 
     Args:
         out: output folder.
@@ -229,5 +232,6 @@ def export_scene(out: str | Path, model: SparseModel, photo_dir: str | Path,
     write_cameras(out / "cameras_sphere.npz", world_mats, scale_mat)
     atomic_write_text(out / "sources.txt",
                       "".join(f"{photo_dir / n}\n" for n in model.names))
+    write_points(out / POINTS_FILE, model.points, model.track_len)
     return {"K": np.stack(Ks), "world_mats": world_mats, "scale_mat": scale_mat,
             "size": sizes.pop()}
