@@ -27,9 +27,16 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
-from neus_l0.sampling import sample_l0, sample_neus_sections, sample_pdf, sanitize_weights
+from neus_l0.sampling import (
+    quantiles,
+    sample_l0,
+    sample_neus_sections,
+    sample_pdf,
+    sanitize_weights,
+)
 
 if TYPE_CHECKING:  # config imports this module's registry; no cycle at run time
     from neus_l0.config import SamplerConfig
@@ -63,6 +70,10 @@ class Sections:
             (its ``prev_esti``).
         next_sdf: (B, N-1) the estimate at the end (``next_esti``); <= prev_sdf.
         inv_s: the fixed logistic sharpness of the round.
+        dist: (B, N-1) the sections' lengths ``z[:, 1:] - z[:, :-1]``, or None (then a
+            sampler that needs them computes them).
+        u: (B, n) the deterministic quantiles of a draw of n samples, or None (a draw of
+            another size, or without them, makes its own); `up_sample` makes them once.
     """
 
     z: Tensor
@@ -70,6 +81,16 @@ class Sections:
     prev_sdf: Tensor
     next_sdf: Tensor
     inv_s: float
+    dist: Tensor | None = None
+    u: Tensor | None = None
+
+    def lengths(self) -> Tensor:
+        """(B, N-1) the sections' lengths (`dist`, or computed)."""
+        return self.dist if self.dist is not None else self.z[:, 1:] - self.z[:, :-1]
+
+    def quantiles(self, n_samples: int) -> Tensor | None:
+        """`u` when it holds n_samples quantiles per ray, else None."""
+        return self.u if self.u is not None and self.u.shape[-1] == n_samples else None
 
 
 def transmittance(alpha: Tensor) -> Tensor:
@@ -81,8 +102,7 @@ def transmittance(alpha: Tensor) -> Tensor:
     Returns:
         (B, N) transmittance before each sample.
     """
-    ones = torch.ones_like(alpha[:, :1])
-    return torch.cumprod(torch.cat([ones, 1.0 - alpha + 1e-7], dim=-1), dim=-1)[:, :-1]
+    return torch.cumprod(F.pad(1.0 - alpha[:, :-1] + 1e-7, (1, 0), value=1.0), dim=-1)
 
 
 def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor, inv_s: float) -> Sections:
@@ -99,19 +119,21 @@ def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor, inv_s: floa
     Returns:
         The `Sections`: weights (alpha times transmittance) and the SDF estimates, (B, N-1).
     """
-    inside = (radius[:, :-1] < 1.0) | (radius[:, 1:] < 1.0)  # (B, N-1)
+    inside = torch.minimum(radius[:, :-1], radius[:, 1:]) < 1.0  # (B, N-1): either end
     prev_sdf, next_sdf = sdf[:, :-1], sdf[:, 1:]
     dist = z[:, 1:] - z[:, :-1]
     mid_sdf = 0.5 * (prev_sdf + next_sdf)
     cos_val = (next_sdf - prev_sdf) / (dist + 1e-5)
-    prev_cos = torch.cat([torch.zeros_like(cos_val[:, :1]), cos_val[:, :-1]], dim=-1)
+    prev_cos = F.pad(cos_val[:, :-1], (1, 0))  # the previous section's (0 before the first)
     cos_val = torch.minimum(prev_cos, cos_val).clip(-1e3, 0.0) * inside
-    prev_esti = mid_sdf - cos_val * dist * 0.5
-    next_esti = mid_sdf + cos_val * dist * 0.5
+    half = cos_val * dist * 0.5
+    prev_esti = mid_sdf - half
+    next_esti = mid_sdf + half
     prev_cdf = torch.sigmoid(prev_esti * inv_s)
     next_cdf = torch.sigmoid(next_esti * inv_s)
     alpha = (prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)
-    return Sections(z, alpha * transmittance(alpha), prev_esti, next_esti, float(inv_s))
+    return Sections(z, alpha * transmittance(alpha), prev_esti, next_esti, float(inv_s),
+                    dist=dist)
 
 
 def section_to_point_weights(z: Tensor, section_weights: Tensor, placement: str = "midpoint",
@@ -186,7 +208,8 @@ class HVSSampler:
 
     def draw(self, sections: Sections, n_samples: int) -> Tensor:
         """Deterministic `sample_pdf` on the sections; (B, n_samples)."""
-        return sample_pdf(sections.z, sections.weights, n_samples, det=True)
+        return sample_pdf(sections.z, sections.weights, n_samples, det=True,
+                          u=sections.quantiles(n_samples))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -243,7 +266,20 @@ class L0Sampler:
                 f"as_density={self.as_density}, base_inv_s={self.base_inv_s})")
 
     def point_weights(self, sections: Sections) -> tuple[Tensor, Tensor]:
-        """The nodes and weights the L0 interpolation runs on, before maxblur; (B, M) each."""
+        """The nodes and weights the L0 interpolation runs on, before maxblur; (B, M) each.
+
+        Without a pad the draw does not depend on each ray's scale of the weights (they are
+        divided by their maximum), so the mean-length factor of ``as_density`` and the
+        ``relative`` division by the mean are left out there (fewer ops, same samples to
+        rounding; a ray holding a non-finite weight then loses that weight only, where
+        the division by its non-finite mean made it uniform).
+        """
+        if self.pad == 0.0 and self.placement == "midpoint":
+            length = sections.lengths()  # (B, N-1)
+            w = sections.weights
+            if self.as_density:
+                w = w / torch.maximum(length, 1e-3 * length.mean(dim=-1, keepdim=True))
+            return torch.add(sections.z[:, :-1], length, alpha=0.5), w
         t, w = section_to_point_weights(sections.z, sections.weights, self.placement,
                                         self.as_density)
         if self.pad_mode == "relative":
@@ -257,7 +293,7 @@ class L0Sampler:
         """Deterministic `sample_l0` on the point weights; (B, n_samples)."""
         t, w = self.point_weights(sections)
         return self._draw(t, w, n_samples, kind=self.kind, det=True, blur=self.blur,
-                          pad=self.pad)
+                          pad=self.pad, u=sections.quantiles(n_samples))
 
 
 def _l0(cfg: SamplerConfig) -> L0Sampler:
@@ -319,24 +355,26 @@ def up_sample(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor,
         return z, z[:, :0]
     per_round = n_importance // steps
     B = z.shape[0]
+    o, d = origins[:, None, :], dirs[:, None, :]  # (B, 1, 3)
 
-    def sdf_at(t: Tensor) -> tuple[Tensor, Tensor]:
-        pts = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (B, n, 3)
-        sdf = sdf_fn(pts.reshape(-1, 3)).to(t.dtype).reshape(B, t.shape[1])
-        return sdf, pts.norm(dim=-1)
+    def sdf_at(t: Tensor) -> Tensor:
+        """(B, n) positions -> (B, 2, n): the SDF and the distance to the origin there."""
+        pts = torch.addcmul(o, d, t[..., None])  # (B, n, 3)
+        sdf = sdf_fn(pts.view(-1, 3)).to(t.dtype).view(B, t.shape[1])
+        return torch.stack([sdf, pts.norm(dim=-1)], dim=1)
 
     new_all = []
     with torch.no_grad():
-        sdf, radius = sdf_at(z)
+        u = quantiles((B,), per_round, True, None, z.dtype, z.device)  # shared by the rounds
+        vals = sdf_at(z)
         for i in range(steps):
+            sdf, radius = vals.unbind(1)
             sections = upsample_section_weights(z, sdf, radius, sampler.base_inv_s * 2**i)
+            sections.u = u
             new_z = sampler.draw(sections, per_round)  # (B, per_round)
             new_all.append(new_z)
-            if i + 1 == steps:
-                z, _ = merge_sorted(z, new_z)
-            else:
-                new_sdf, new_radius = sdf_at(new_z)
-                z_all, sdf = merge_sorted(z, new_z, sdf, new_sdf)
-                _, radius = merge_sorted(z, new_z, radius, new_radius)
-                z = z_all
+            z, order = torch.sort(torch.cat([z, new_z], dim=-1), dim=-1)  # one sort a round
+            if i + 1 < steps:  # the values follow the same order
+                vals = torch.gather(torch.cat([vals, sdf_at(new_z)], dim=-1), -1,
+                                    order[:, None, :].expand(B, 2, order.shape[1]))
     return z, torch.cat(new_all, dim=-1)
