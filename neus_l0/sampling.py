@@ -175,8 +175,8 @@ def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
     Args:
         mass: (R, M) finite non-negative piece masses.
-        d: (R, M) piece lengths, used as masses for rays whose ``mass`` sums to 0; where the
-            lengths sum to 0 too, every piece gets mass 1.
+        d: (R, M) piece lengths, used as masses (plus sqrt(tiny), so that a ray of
+            zero-length pieces gets equal masses) for rays whose ``mass`` sums to 0.
 
     Returns:
         lo: (R, M) cdf at the start of each piece (exactly the previous piece's ``hi``).
@@ -184,8 +184,7 @@ def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         degenerate: (R, 1) bool, True where ``mass`` was replaced.
     """
     degenerate = mass.sum(dim=-1, keepdim=True) <= 0  # (R, 1)
-    no_length = d.sum(dim=-1, keepdim=True) <= 0
-    mass = torch.where(degenerate, d + no_length, mass)  # (bool adds as 0 / 1)
+    mass = torch.where(degenerate, d + _flat(d.dtype), mass)
     csum = torch.cumsum(mass, dim=-1)
     hi = csum / csum[:, -1:]
     lo = torch.nn.functional.pad(hi[:, :-1], (1, 0))
