@@ -247,8 +247,8 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
                        eikonal_idx=inputs.eikonal_idx)
     samples = out.active.sum() * out.t.shape[1]
-    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]
-    return losses["loss"], torch.stack([v.detach().reshape(()).float() for v in values])
+    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]  # () each
+    return losses["loss"], torch.stack(values).detach().float()  # stack promotes the count
 
 
 @dataclasses.dataclass

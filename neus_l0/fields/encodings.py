@@ -207,6 +207,9 @@ class HashGridEncoding(Encoding):
                              persistent=False)  # (L, 1) lr_scale
         corners = torch.tensor(list(itertools.product((0, 1), repeat=3)), dtype=torch.int64)
         self.register_buffer("corners", corners, persistent=False)  # (8, 3), x major
+        # the corners' part of the index product, and the offsets as a column: (L, 8, 3), (L, 1)
+        self.register_buffer("corner_mult", corners * self.level_mult, persistent=False)
+        self.register_buffer("offset_col", self.offsets[:, None].clone(), persistent=False)
         self.register_buffer("steps", torch.zeros((), dtype=torch.int64))
         table = torch.empty(offsets[-1], n_features).uniform_(-init_scale, init_scale)
         self.table = nn.Parameter(table / lr_scale)  # (sum of level sizes, F)
@@ -235,14 +238,15 @@ class HashGridEncoding(Encoding):
         Returns:
             (N, L, 8) int64 rows of `table` (level offsets included).
         """
-        p = (cell[:, :, None, :] + self.corners) * self.level_mult  # (N, L, 8, 3)
+        # (cell + corner) * mult, as cell * mult + corner * mult in one op: (N, L, 8, 3)
+        p = torch.addcmul(self.corner_mult, cell[:, :, None, :], self.level_mult)
         if self.n_direct == self.n_levels:
             idx = p.sum(-1)
         else:
             x, y, z = p.unbind(-1)
             hashed = (x ^ y ^ z) & (self.table_size - 1)  # (N, L, 8)
             idx = torch.where(self.level_direct, p.sum(-1), hashed) if self.n_direct else hashed
-        return idx + self.offsets[:, None]
+        return idx + self.offset_col
 
     def _corners(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The cell of every point at every level and its corners' table entries.
@@ -264,7 +268,10 @@ class HashGridEncoding(Encoding):
             cell = torch.minimum(pos.floor(), self.cell_max.to(x.dtype))  # (N, L, 3)
             idx = self.grid_indices(cell.long())  # (N, L, 8)
         frac = pos - cell
-        v = self.table.index_select(0, idx.view(-1)).view(*idx.shape, self.n_features)
+        if torch.is_grad_enabled():  # index_select: its backward is one index_add
+            v = self.table.index_select(0, idx.view(-1)).view(*idx.shape, self.n_features)
+        else:
+            v = self.table[idx]  # one op
         return raw, pos, frac, v
 
     def grid_features(self, x: Tensor) -> Tensor:
@@ -278,10 +285,24 @@ class HashGridEncoding(Encoding):
         None when all are 1; counts a training pass (see the class docstring)."""
         if self.start_level >= self.n_levels:
             return None if self.lr_scale == 1.0 else self.level_scale.to(x.dtype)
-        w = torch.where(self.level < self.active_levels(),
-                        self.level_scale.to(x.dtype), 0.0)  # (L, 1)
+        w = self._active_weights(x.dtype)  # (L, 1)
         if self.training and torch.is_grad_enabled():
             self.steps += 1
+        return w
+
+    def _active_weights(self, dtype: torch.dtype) -> Tensor:
+        """(L, 1): lr_scale for the active levels, 0 for the others; outside compiled code
+        cached until `steps` changes (its version counter moves with every in-place
+        update: the count of a training pass, `load_state_dict`), so the no-gradient
+        passes of a step (up-sampling) compute it once."""
+        compiling = torch.compiler.is_compiling()
+        key = (self.steps._version, self.steps.data_ptr(), dtype) if not compiling else None
+        cached = self.__dict__.get("_active_cache")
+        if cached is not None and cached[0] == key and key is not None:
+            return cached[1]
+        w = torch.where(self.level < self.active_levels(), self.level_scale.to(dtype), 0.0)
+        if not compiling:
+            self.__dict__["_active_cache"] = (key, w)
         return w
 
     def _prefix(self, x: Tensor) -> list[Tensor]:
@@ -346,13 +367,13 @@ def _trilinear(v: Tensor, frac: Tensor) -> Tensor:
         (N, L, F).
     """
     n, lv, _, nf = v.shape
-    fx, fy, fz = frac[..., None, None].unbind(2)  # (N, L, 1, 1) each
-    lo, hi = v.view(n, lv, 2, 4, nf).unbind(2)
-    v = torch.lerp(lo, hi, fx)  # (N, L, 4, F) over x
-    lo, hi = v.view(n, lv, 2, 2, nf).unbind(2)
-    v = torch.lerp(lo, hi, fy)  # (N, L, 2, F) over y
-    lo, hi = v.unbind(2)
-    return torch.lerp(lo, hi, fz[:, :, 0])  # (N, L, F) over z
+    fx, fy, fz = frac.unsqueeze(-1).unbind(2)  # (N, L, 1) each
+    lo, hi = v.view(n, lv, 2, 4 * nf).unbind(2)
+    v = torch.lerp(lo, hi, fx)  # (N, L, 4 F) over x: corners (y, z) x features
+    lo, hi = v.view(n, lv, 2, 2 * nf).unbind(2)
+    v = torch.lerp(lo, hi, fy)  # (N, L, 2 F) over y
+    lo, hi = v.view(n, lv, 2, nf).unbind(2)
+    return torch.lerp(lo, hi, fz)  # (N, L, F) over z
 
 
 def _trilinear_and_derivative(v: Tensor, frac: Tensor) -> tuple[Tensor, Tensor]:
