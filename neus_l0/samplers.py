@@ -23,6 +23,7 @@ Shapes: B rays, N samples per ray (sorted), n samples drawn per round.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
@@ -241,8 +242,8 @@ class L0Sampler:
         pad, pad_mode, blur: maxblur's pad, how it scales, and whether to blur at all.
         placement, as_density: see `section_to_point_weights`.
         base_inv_s: NeuS's first-round sharpness.
-        compile: draw through `torch.compile` (``exp`` and ``linear`` only; compiled, the
-            ``inverse`` kind's all-zero rays came out non-finite, so it stays eager).
+        compile: deprecated, no effect (one warning): ``train.compile=true`` compiles the
+            whole training step, the draw included (see `warn_sampler_compile`).
     """
 
     def __init__(self, name: str = "l0", kind: str = "exp", pad: float = 0.0,
@@ -257,8 +258,8 @@ class L0Sampler:
         self.pad_mode, self.blur = pad_mode, blur
         self.placement, self.as_density = placement, as_density
         self._draw = sample_l0
-        if compile and kind in ("exp", "linear"):
-            self._draw = torch.compile(sample_l0, dynamic=True)
+        if compile:
+            warn_sampler_compile()
 
     def __repr__(self) -> str:
         return (f"L0Sampler(name={self.name!r}, kind={self.kind!r}, pad={self.pad}, "
@@ -296,6 +297,24 @@ class L0Sampler:
                           pad=self.pad, u=sections.quantiles(n_samples))
 
 
+_COMPILE_WARNED = False
+
+
+def warn_sampler_compile() -> None:
+    """Warn (once per process) that ``sampler.compile`` no longer does anything.
+
+    The draw compiled alone gave 1.05x on a CPU step and never ran on CUDA; the whole-step
+    compile (``train.compile=true``, `neus_l0.compile_step`) traces the draw with the rest
+    of the step in one graph, so the option is kept only so that old configs still load.
+    """
+    global _COMPILE_WARNED
+    if not _COMPILE_WARNED:
+        _COMPILE_WARNED = True
+        warnings.warn("sampler.compile (render.compile_sampler) is deprecated and has no "
+                      "effect: use train.compile=true to compile the whole training step",
+                      FutureWarning, stacklevel=3)
+
+
 def _l0(cfg: SamplerConfig) -> L0Sampler:
     return L0Sampler(cfg.name, cfg.l0_kind(), cfg.pad, cfg.pad_mode, cfg.blur, cfg.placement,
                      cfg.as_density, cfg.base_inv_s, cfg.compile)
@@ -316,7 +335,7 @@ SAMPLERS = tuple(REGISTRY)
 def build_sampler(cfg: SamplerConfig | str) -> Sampler:
     """Build the sampler a `SamplerConfig` (or a bare name, with defaults) describes.
 
-    Build it once (per run, or per process): ``compile=True`` compiles at the first draw.
+    ``cfg.compile`` is deprecated and ignored (one warning; `warn_sampler_compile`).
     """
     if isinstance(cfg, str):
         from neus_l0.config import SamplerConfig
@@ -324,6 +343,8 @@ def build_sampler(cfg: SamplerConfig | str) -> Sampler:
         cfg = SamplerConfig(name=cfg)
     if cfg.name not in REGISTRY:
         raise ValueError(f"unknown sampler {cfg.name!r} (choose from {', '.join(SAMPLERS)})")
+    if cfg.compile:
+        warn_sampler_compile()
     return REGISTRY[cfg.name](cfg)
 
 

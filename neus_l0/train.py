@@ -289,8 +289,8 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
         batch_size: rays of this step (None: `train.batch_size`).
         setup: the run's hull bounds, sampler, pixel pool and compiled step (`StepSetup`).
             None: no bounds, no pool, eager, and the config's sampler built for this call
-            (a loop should build a `StepSetup` once: with ``sampler.compile`` a sampler
-            built per call would compile per call).
+            (a loop should build a `StepSetup` once, so that the sampler and a
+            compiled step are built once).
 
     Returns:
         (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order
