@@ -398,7 +398,8 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, f
     prev_sdf, next_sdf = sdf - shift, sdf + shift
     prev_cdf = torch.sigmoid(prev_sdf * inv_s)
     next_cdf = torch.sigmoid(next_sdf * inv_s)
-    alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clip(0.0, 1.0)
+    # prev_sdf >= next_sdf (the slope is <= 0), so alpha > 0: only the clip at 1 can act
+    alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clamp_max(1.0)
     return {"t": t, "t_fine": t_fine, "dists": dists, "t_mid": mid, "pts": pts,
             "gradients": gradients, "rgb": rgb, "alpha": alpha, "inv_s": inv_s,
             "entry_sdf": prev_sdf[:, 0], "entry_slope": slope[:, 0]}

@@ -97,13 +97,43 @@ class Sections:
 def transmittance(alpha: Tensor) -> Tensor:
     """Exclusive cumulative product of (1 - alpha + 1e-7) along the last axis (NeuS's).
 
+    Its backward is `_ExclusiveCumprod`'s (7 ops, where autograd's cumprod backward
+    dispatches 34 to allow zero factors, which alpha <= 1 never gives).
+
     Args:
-        alpha: (B, N).
+        alpha: (B, N) in [0, 1].
 
     Returns:
         (B, N) transmittance before each sample.
     """
-    return torch.cumprod(F.pad(1.0 - alpha[:, :-1] + 1e-7, (1, 0), value=1.0), dim=-1)
+    keep = 1.0 - alpha + 1e-7  # (B, N) >= 1e-7 > 0
+    if not keep.requires_grad:
+        return _exclusive_cumprod(keep)
+    return _ExclusiveCumprod.apply(keep)
+
+
+def _exclusive_cumprod(keep: Tensor) -> Tensor:
+    """(B, N) -> (B, N): ``out_i = prod_{j < i} keep_j`` (out_0 = 1)."""
+    return torch.cumprod(F.pad(keep[:, :-1], (1, 0), value=1.0), dim=-1)
+
+
+class _ExclusiveCumprod(torch.autograd.Function):
+    """`_exclusive_cumprod` of positive factors, with the backward in closed form:
+    ``d loss / d keep_j = (sum_{i > j} g_i out_i) / keep_j`` (a reversed cumulative sum)."""
+
+    @staticmethod
+    def forward(keep: Tensor) -> Tensor:
+        return _exclusive_cumprod(keep)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], output)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        keep, out = ctx.saved_tensors
+        after = torch.flip(torch.cumsum(torch.flip(grad * out, [-1]), dim=-1), [-1])  # i >= j
+        return F.pad(after[:, 1:], (0, 1)) / keep  # i > j
 
 
 def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor, inv_s: float) -> Sections:
