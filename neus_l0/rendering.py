@@ -135,7 +135,10 @@ def annealed_cos(true_cos: Tensor, cos_anneal_ratio: float | Tensor) -> Tensor:
     Returns:
         (...) the slope used, always <= 0.
     """
-    # -relu(-x) == min(x, 0): the two slopes, then one lerp between them
+    # -relu(-x) == min(x, 0): the two slopes, then one lerp between them (a Python 0 or
+    # 1, e.g. without annealing, picks one: what the lerp gives, in fewer ops)
+    if not isinstance(cos_anneal_ratio, Tensor) and cos_anneal_ratio in (0.0, 1.0):
+        return (true_cos if cos_anneal_ratio else true_cos * 0.5 - 0.5).clamp_max(0.0)
     early = (true_cos * 0.5 - 0.5).clamp_max(0.0)
     return torch.lerp(early, true_cos.clamp_max(0.0), cos_anneal_ratio)
 

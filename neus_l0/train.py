@@ -196,7 +196,9 @@ class StepInputs:
             when masks are unused).
         noise: the jitter's uniforms (None: no jitter).
         eikonal_idx: (k,) the Eikonal subset's samples (None: all samples).
-        anneal: () NeuS's cos-anneal ratio at this iteration.
+        anneal: () NeuS's cos-anneal ratio at this iteration; the number 1.0 when
+            `train.anneal_end` is 0 (no annealing: constant over the run, so a compiled
+            step sees the same input every step, and the slope takes fewer ops).
         mask_scale: the pixel pool's fraction (1: rays drawn from every pixel).
     """
 
@@ -206,7 +208,7 @@ class StepInputs:
     mask: Tensor
     noise: RenderNoise | None
     eikonal_idx: Tensor | None
-    anneal: Tensor
+    anneal: Tensor | float
     mask_scale: float
 
 
@@ -227,8 +229,9 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
                                   scene.device)
     mask = batch["mask"]
     mask = (mask > 0.5).float() if cfg.train.mask_weight > 0 else torch.ones_like(mask)
-    anneal = torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
-                          device=scene.device)
+    anneal = (1.0 if cfg.train.anneal_end <= 0 else
+              torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
+                           device=scene.device))
     return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
                       anneal, mask_scale)
 
