@@ -408,24 +408,24 @@ def up_sample(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor,
     B = z.shape[0]
     o, d = origins[:, None, :], dirs[:, None, :]  # (B, 1, 3)
 
-    def sdf_at(t: Tensor) -> Tensor:
-        """(B, n) positions -> (B, 2, n): the SDF and the distance to the origin there."""
+    def sdf_at(t: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, n) positions -> the SDF and the distance to the origin there, (B, n) each."""
         pts = torch.addcmul(o, d, t[..., None])  # (B, n, 3)
         sdf = sdf_fn(pts.view(-1, 3)).to(t.dtype).view(B, t.shape[1])
-        return torch.stack([sdf, pts.norm(dim=-1)], dim=1)
+        return sdf, pts.norm(dim=-1)
 
     new_all = []
     with torch.no_grad():
         u = quantiles((B,), per_round, True, None, z.dtype, z.device)  # shared by the rounds
-        vals = sdf_at(z)
+        sdf, radius = sdf_at(z)
         for i in range(steps):
-            sdf, radius = vals.unbind(1)
             sections = upsample_section_weights(z, sdf, radius, sampler.base_inv_s * 2**i)
             sections.u = u
             new_z = sampler.draw(sections, per_round)  # (B, per_round)
             new_all.append(new_z)
             z, order = torch.sort(torch.cat([z, new_z], dim=-1), dim=-1)  # one sort a round
             if i + 1 < steps:  # the values follow the same order
-                vals = torch.gather(torch.cat([vals, sdf_at(new_z)], dim=-1), -1,
-                                    order[:, None, :].expand(B, 2, order.shape[1]))
+                new_sdf, new_radius = sdf_at(new_z)
+                sdf = torch.gather(torch.cat([sdf, new_sdf], dim=-1), -1, order)
+                radius = torch.gather(torch.cat([radius, new_radius], dim=-1), -1, order)
     return z, torch.cat(new_all, dim=-1)

@@ -125,14 +125,17 @@ def _prepare_weights(weights: Tensor, dtype: torch.dtype, blur: bool, pad: float
         zeros stays zeros.
     """
     w = weights.to(dtype)  # the samplers run without gradient: no detach needed
-    w = maxblur(w, pad) if blur else sanitize_weights(w)
+    # without blur only NaN and inf need replacing here: negative weights end up below tiny
+    # after the division (by a positive max, or by tiny when no weight is positive) and the
+    # threshold below zeroes them
+    w = maxblur(w, pad) if blur else torch.nan_to_num(w, nan=0.0, posinf=0.0, neginf=0.0)
     # divided by the ray's max, at least tiny: a ray of zeros stays zeros, and a ray whose
     # max is sub-normal is scaled up by 1 / tiny instead (the draw does not depend on scale)
     w = w / w.amax(dim=-1, keepdim=True).clamp_min_(torch.finfo(dtype).tiny)  # (R, N)
     tiny = torch.finfo(dtype).tiny
     if _strictly_positive(blur, pad):
         return w.clamp_min_(tiny)
-    return w.masked_fill_(w < tiny, 0.0)
+    return F.threshold(w, tiny, 0.0)  # w if w > tiny else 0: one op
 
 
 def _strictly_positive(blur: bool, pad: float) -> bool:

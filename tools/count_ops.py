@@ -48,6 +48,7 @@ PHASES = {
     "train:draw_step_inputs": "inputs",
     "train:update_occupancy": "occupancy",
     "rendering:render_rays": "render",
+    "rendering:ray_bounds": "bounds",
     "rendering:_ray_bounds": "bounds",
     "rendering:coarse_z_vals": "coarse",
     "samplers:up_sample": "up_sample",
