@@ -9,7 +9,7 @@ import torch
 from neus_l0.config import EncodingConfig, ModelConfig, SDFConfig, load_config
 from neus_l0.errors import ConfigError
 from neus_l0.fields import HashGridEncoding, build_encoding, build_model, sdf_and_gradient
-from neus_l0.fields.encodings import HASH_PRIMES, _GridInterp, level_resolutions, spatial_hash
+from neus_l0.fields.encodings import HASH_PRIMES, level_resolutions, spatial_hash
 
 
 def tiny_grid(**kw) -> HashGridEncoding:
@@ -353,26 +353,3 @@ def test_active_level_cache_follows_the_step_counter():
         third = enc(x)[:, n_pre:].view(5, 3, 2)
     assert (third[:, 2] != 0).any()
 
-
-def test_closed_form_table_gradient_equals_autograds_in_float64():
-    """`forward_jacobian` with constant points (the `analytic` path's closed-form table
-    gradient, `_GridInterp`) against the same expression differentiated by autograd."""
-    enc = tiny_grid(lr_scale=3.0, start_level=2, update_steps=1, bound=1.2)
-    enc.train()
-    g = torch.Generator().manual_seed(4)
-    x = (torch.rand(50, 3, generator=g, dtype=torch.float64) * 2 - 1) * 1.3
-    gv = torch.randn(50, enc.out_dim, generator=g, dtype=torch.float64)
-    gj = torch.randn(50, 3, enc.out_dim, generator=g, dtype=torch.float64)
-    grads = []
-    for points in (x, x.clone().requires_grad_(True)):  # closed form, then autograd
-        enc.steps.zero_()
-        val, jac = enc.forward_jacobian(points)
-        (gt,) = torch.autograd.grad((val * gv).sum() + (jac * gj).sum(), enc.table)
-        grads.append((val.detach(), jac.detach(), gt))
-    for a, b in zip(*grads, strict=True):
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-10)
-    t = enc.table.detach().clone().requires_grad_(True)
-    cells = enc._cells(x)
-    assert torch.autograd.gradcheck(
-        lambda tab: _GridInterp.apply(tab, cells[3], cells[2], enc.jac_mask, enc.jac_sign),
-        (t,))

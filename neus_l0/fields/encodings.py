@@ -16,6 +16,7 @@ import itertools
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from neus_l0.config import EncodingConfig
@@ -211,11 +212,6 @@ class HashGridEncoding(Encoding):
         # the corners' part of the index product, and the offsets as a column: (L, 8, 3), (L, 1)
         self.register_buffer("corner_mult", corners * self.level_mult, persistent=False)
         self.register_buffer("offset_col", self.offsets[:, None].clone(), persistent=False)
-        # `_corner_weights`: (3, 1, 4) True where column k is the derivative along axis a
-        # (k = a + 1), and the derivative of the weights (1 - f, f) of the two corners
-        self.register_buffer("jac_mask", (torch.arange(4) == torch.arange(3)[:, None] + 1)
-                             [:, None, :], persistent=False)
-        self.register_buffer("jac_sign", torch.tensor([[-1.0], [1.0]]), persistent=False)
         self.register_buffer("steps", torch.zeros((), dtype=torch.int64))
         table = torch.empty(offsets[-1], n_features).uniform_(-init_scale, init_scale)
         self.table = nn.Parameter(table / lr_scale)  # (sum of level sizes, F)
@@ -280,10 +276,10 @@ class HashGridEncoding(Encoding):
         """`_cells`, with the corners' table entries v (N, L, 8, F) (as stored, i.e.
         without `lr_scale`) in place of their rows."""
         raw, pos, frac, idx = self._cells(x)
-        if torch.is_grad_enabled():  # index_select: its backward is one index_add
+        if torch.is_grad_enabled():  # index_select: twice differentiable (autograd's path)
             v = self.table.index_select(0, idx.view(-1)).view(*idx.shape, self.n_features)
-        else:
-            v = self.table[idx]  # one op
+        else:  # one op, as fast as index_select (indexing, table[idx], is 2x slower on CPU)
+            v = F.embedding(idx, self.table)
         return raw, pos, frac, v
 
     def grid_features(self, x: Tensor) -> Tensor:
@@ -344,13 +340,8 @@ class HashGridEncoding(Encoding):
         inactive levels have zero value and zero derivative.
         """
         weights = self._level_weights(x)
-        if x.requires_grad or not torch.is_grad_enabled():  # the plain autograd form
-            raw, pos, frac, v = self._corners(x)
-            feats, dfeats = _trilinear_and_derivative(v, frac)  # (N, L, F), (N, L, 3, F)
-        else:  # x is a constant: the table's gradient in closed form (`_GridInterp`)
-            raw, pos, frac, idx = self._cells(x)
-            feats, dfeats = _GridInterp.apply(self.table, idx, frac, self.jac_mask,
-                                              self.jac_sign.to(x.dtype))
+        raw, pos, frac, v = self._corners(x)
+        feats, dfeats = _trilinear_and_derivative(v, frac)  # (N, L, F), (N, L, 3, F)
         gain = self.half_res.to(x.dtype)  # (L, 1): d pos / d x inside the box
         if self.bound != 1.0:
             gain = gain / self.bound
@@ -418,69 +409,6 @@ def _trilinear_and_derivative(v: Tensor, frac: Tensor) -> tuple[Tensor, Tensor]:
     a = torch.cat([torch.addcmul(lo, fz[:, :, 0], d), d[..., :nf]], dim=-1)  # (N, L, 4F)
     a = a.view(n, lv, 4, nf)  # value, d/dfx, d/dfy, d/dfz
     return a[:, :, 0], a[:, :, 1:]
-
-
-def _corner_weights(frac: Tensor, mask: Tensor, sign: Tensor) -> Tensor:
-    """The trilinear weights of the 8 corners and their derivatives along x, y, z.
-
-    Args:
-        frac: (N, L, 3) position in the cell.
-        mask: (3, 1, 4) bool, True at column a + 1 of axis a; sign: (2, 1) [[-1], [1]].
-
-    Returns:
-        (N, L, 8, 4): ``[..., c, 0]`` the weight of corner c (x major), ``[..., c, 1 + a]``
-        its derivative wrt frac_a; so values and derivatives are ``W^T v``.
-    """
-    n, lv, _ = frac.shape
-    f = frac.unsqueeze(-1)  # (N, L, 3, 1)
-    per_axis = torch.cat([1.0 - f, f], dim=-1)  # (N, L, 3, 2): weights of the 2 corners
-    # column k: the weights, but their derivative (-1, 1) on the axis k differentiates
-    a = torch.where(mask, sign, per_axis.unsqueeze(-1))  # (N, L, 3, 2, 4)
-    ax, ay, az = a.unbind(2)  # (N, L, 2, 4) each
-    w = (ax.view(n, lv, 2, 1, 1, 4) * ay.view(n, lv, 1, 2, 1, 4)
-         * az.view(n, lv, 1, 1, 2, 4))
-    return w.view(n, lv, 8, 4)
-
-
-class _GridInterp(torch.autograd.Function):
-    """Values and cell derivatives of the trilinear interpolation of table rows, with the
-    table's gradient in closed form.
-
-    Both outputs are linear in the 8 corner rows, ``[value, d/dfx, d/dfy, d/dfz] = W^T v``
-    (`_corner_weights`), so the gradient of the rows is ``W G`` (one batched product) and
-    the table's is its ``index_add``: about 22 ops where autograd replays the 3 rounds of
-    `_trilinear_and_derivative` (about 37). frac and idx get no gradient (the points are
-    constants: the `analytic` SDF gradient detaches them).
-
-    Inputs: table (T, F), idx (N, L, 8) int64, frac (N, L, 3), mask and sign (see
-    `_corner_weights`). Outputs: values (N, L, F) and derivatives (N, L, 3, F).
-    """
-
-    @staticmethod
-    def forward(table: Tensor, idx: Tensor, frac: Tensor, mask: Tensor,
-                sign: Tensor) -> tuple[Tensor, Tensor]:
-        return _trilinear_and_derivative(table[idx], frac)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        table, idx, frac, mask, sign = inputs
-        ctx.save_for_backward(idx, frac, mask, sign)
-        ctx.rows = table.shape[0]
-
-    @staticmethod
-    def backward(ctx, g_val: Tensor | None, g_der: Tensor | None):
-        idx, frac, mask, sign = ctx.saved_tensors
-        n, lv, _ = frac.shape
-        nf = g_val.shape[-1] if g_val is not None else g_der.shape[-1]
-        if g_val is None:
-            g_val = g_der.new_zeros(n, lv, nf)
-        if g_der is None:
-            g_der = g_val.new_zeros(n, lv, 3, nf)
-        g = torch.cat([g_val.unsqueeze(2), g_der], dim=2)  # (N, L, 4, F)
-        w = _corner_weights(frac, mask, sign)  # (N, L, 8, 4)
-        g_rows = torch.bmm(w.view(n * lv, 8, 4), g.view(n * lv, 4, nf))  # (N L, 8, F)
-        g_table = g.new_zeros(ctx.rows, nf).index_add_(0, idx.view(-1), g_rows.view(-1, nf))
-        return g_table, None, None, None, None
 
 
 def build_encoding(cfg: EncodingConfig, in_dim: int) -> Encoding:
