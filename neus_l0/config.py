@@ -331,10 +331,9 @@ class SamplerConfig:
     base_inv_s: float = 64.0
     """NeuS's fixed sharpness of the first up-sampling round; round i uses base * 2^i."""
     compile: bool = False
-    """Run the L0 draw (`l0`, `l0-linear`) through `torch.compile` (fused kernels instead of
-    ~50 small ones). Measured on the CPU: the draw alone 1.35x faster, a demo training step
-    1.05x, against seconds of compilation at start-up (docs/BENCHMARKS.md). Needs a C++
-    compiler on the CPU. Was `render.compile_sampler`."""
+    """Deprecated, no effect (a one-line warning): `train.compile=true` compiles the whole
+    training step, the draw included. Kept so that configs and checkpoints that set it (or
+    the older `render.compile_sampler`) still load."""
 
     def l0_kind(self) -> str:
         """The L0 interpolation kind in effect (`kind`, else the name's)."""

@@ -62,12 +62,20 @@ def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
     Returns:
         (B, n_samples) sorted.
     """
+    return _coarse(near, far - near, n_samples, perturb, generator, noise)
+
+
+def _coarse(near: Tensor, span: Tensor, n_samples: int, perturb: bool,
+            generator: torch.Generator | None = None, noise: Tensor | None = None,
+            step: Tensor | None = None) -> Tensor:
+    """`coarse_z_vals` with ``span = far - near`` (B, 1) given (and ``step = span /
+    n_samples``, if computed already); (B, n_samples)."""
     lin = torch.linspace(0.0, 1.0, n_samples, device=near.device, dtype=near.dtype)
-    z = near + (far - near) * lin  # (B, n)
+    z = torch.addcmul(near, span, lin)  # (B, n)
     if perturb:
         r = noise if noise is not None else torch.rand(
             near.shape, generator=generator, device=near.device, dtype=near.dtype)
-        z = z + (r - 0.5) * (far - near) / n_samples
+        z = torch.addcmul(z, r - 0.5, span / n_samples if step is None else step)
     return z
 
 
@@ -127,8 +135,12 @@ def annealed_cos(true_cos: Tensor, cos_anneal_ratio: float | Tensor) -> Tensor:
     Returns:
         (...) the slope used, always <= 0.
     """
-    return -(F.relu(-true_cos * 0.5 + 0.5) * (1.0 - cos_anneal_ratio)
-             + F.relu(-true_cos) * cos_anneal_ratio)
+    # -relu(-x) == min(x, 0): the two slopes, then one lerp between them (a Python 0 or
+    # 1, e.g. without annealing, picks one: what the lerp gives, in fewer ops)
+    if not isinstance(cos_anneal_ratio, Tensor) and cos_anneal_ratio in (0.0, 1.0):
+        return (true_cos if cos_anneal_ratio else true_cos * 0.5 - 0.5).clamp_max(0.0)
+    early = (true_cos * 0.5 - 0.5).clamp_max(0.0)
+    return torch.lerp(early, true_cos.clamp_max(0.0), cos_anneal_ratio)
 
 
 def section_sdf_ends(sdf: Tensor, true_cos: Tensor, dists: Tensor,
@@ -217,16 +229,16 @@ def sphere_chord(origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]
         ``mid -+ 1``, for rays that miss); hits: (B,) bool, whether the ray meets the
         sphere in front of its origin.
     """
-    near, far = near_far_from_sphere(origins, dirs)
-    mid = 0.5 * (near + far)  # (B, 1) closest approach
-    closest = origins + mid * dirs
+    # the closest approach (NeuS's mid of `near_far_from_sphere`)
+    mid = -(origins * dirs).sum(-1, keepdim=True) / (dirs * dirs).sum(-1, keepdim=True)
+    closest = torch.addcmul(origins, mid, dirs)  # (B, 3)
     half2 = 1.0 - (closest * closest).sum(-1, keepdim=True)  # (B, 1)
     half = half2.clamp_min(0.0).sqrt()
-    t_in, t_out = (mid - half).clamp_min(0.0), mid + half
-    hits = (half2[:, 0] > 0.0) & (t_out[:, 0] > 0.0)
-    t_in = torch.where(hits[:, None], t_in, near)
-    t_out = torch.where(hits[:, None], t_out, far)
-    return t_in, t_out, hits
+    t_out = mid + half
+    hits = (half2 > 0.0) & (t_out > 0.0)  # (B, 1)
+    t_in = torch.where(hits, (mid - half).clamp_min(0.0), mid - 1.0)
+    t_out = torch.where(hits, t_out, mid + 1.0)
+    return t_in, t_out, hits[:, 0]
 
 
 class RayBounds(Protocol):
@@ -258,15 +270,25 @@ def ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
     Returns:
         near, far: (B, 1) with far > near; active: (B,) bool.
     """
+    return _ray_bounds(origins, dirs, cfg, bounds)[:3]
+
+
+def _ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
+                bounds: Sequence[RayBounds] = ()
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """`ray_bounds`, and (B, 1) where each ray enters and leaves the unit sphere (its `near`
+    and `far` before `bounds` narrowed them; `near` and `far` themselves without culling)."""
     if not cfg.cull_outside_sphere and not bounds:
         near, far = near_far_from_sphere(origins, dirs)
-        return near, far, torch.ones(origins.shape[0], dtype=torch.bool, device=near.device)
+        active = torch.ones(origins.shape[0], dtype=torch.bool, device=near.device)
+        return near, far, active, near, far
     near, far, active = sphere_chord(origins, dirs)
+    entry, exit_ = near, far
     for b in bounds:
         near, far, hits = b.ray_bounds(origins, dirs, near, far)
         active = active & hits
     far = torch.maximum(far, near + 1e-6)  # a tangent ray still gets a proper interval
-    return near, far, active
+    return near, far, active, entry, exit_
 
 
 @dataclasses.dataclass
@@ -353,30 +375,38 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, f
         from any autocast precision).
     """
     B = origins.shape[0]
-    t = coarse_z_vals(near, far, cfg.n_samples, noise is not None,
-                      noise=None if noise is None else noise.coarse)
+    span = far - near  # (B, 1)
+    step = span / cfg.n_samples  # NeuS's 2 / n_samples on its own bounds
+    t = _coarse(near, span, cfg.n_samples, noise is not None,
+                noise=None if noise is None else noise.coarse, step=step)
     t, t_fine = up_sample(lambda p: model.sdf.sdf(p).float(), origins, dirs, t,
                           as_sampler(sampler), cfg.n_importance, cfg.up_sample_steps)
     N = t.shape[1]
-    last = (far - near) / cfg.n_samples  # (B, 1) NeuS's 2 / n_samples on its own bounds
-    dists = torch.cat([t[:, 1:] - t[:, :-1], last], dim=-1)
-    mid = t + 0.5 * dists  # (B, N)
-    pts = origins[:, None, :] + dirs[:, None, :] * mid[..., None]  # (B, N, 3)
-    d = dirs[:, None, :].expand(B, N, 3)
-    out, grad = sdf_and_gradient(model.sdf, pts.reshape(-1, 3), create_graph=create_graph)
+    dists = torch.cat([t[:, 1:] - t[:, :-1], step], dim=-1)
+    half = 0.5 * dists
+    mid = t + half  # (B, N)
+    d = dirs[:, None, :]  # (B, 1, 3)
+    pts = torch.addcmul(origins[:, None, :], d, mid[..., None])  # (B, N, 3)
+    flat = pts.view(-1, 3)
+    out, grad = sdf_and_gradient(model.sdf, flat, create_graph=create_graph)
     out, grad = out.float(), grad.float()
-    sdf = out[:, 0].reshape(B, N)
-    gradients = grad.reshape(B, N, 3)
-    rgb = model.color(pts.reshape(-1, 3), grad, d.reshape(-1, 3), out[:, 1:])
-    rgb = rgb.float().reshape(B, N, 3)
+    sdf = out[:, 0].view(B, N)
+    gradients = grad.view(B, N, 3)
+    rgb = model.color(flat, grad, d.expand(B, N, 3).reshape(-1, 3), out[:, 1:])
+    rgb = rgb.float().view(B, N, 3)
     true_cos = (d * gradients).sum(-1)  # (B, N)
     inv_s = model.variance.inv_s()
-    alpha = cos_anneal_alpha(sdf, true_cos, dists, inv_s, cos_anneal_ratio)
-    prev_sdf, _ = section_sdf_ends(sdf[:, :1], true_cos[:, :1], dists[:, :1], cos_anneal_ratio)
+    # `cos_anneal_alpha`, with the slope and the section ends computed once
+    slope = annealed_cos(true_cos, cos_anneal_ratio)
+    shift = slope * half
+    prev_sdf, next_sdf = sdf - shift, sdf + shift
+    prev_cdf = torch.sigmoid(prev_sdf * inv_s)
+    next_cdf = torch.sigmoid(next_sdf * inv_s)
+    # prev_sdf >= next_sdf (the slope is <= 0), so alpha > 0: only the clip at 1 can act
+    alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clamp_max(1.0)
     return {"t": t, "t_fine": t_fine, "dists": dists, "t_mid": mid, "pts": pts,
             "gradients": gradients, "rgb": rgb, "alpha": alpha, "inv_s": inv_s,
-            "entry_sdf": prev_sdf[:, 0],
-            "entry_slope": annealed_cos(true_cos[:, 0], cos_anneal_ratio)}
+            "entry_sdf": prev_sdf[:, 0], "entry_slope": slope[:, 0]}
 
 
 def _with_background(model: NeuSModel, origins: Tensor, dirs: Tensor, fg: dict[str, Tensor],
@@ -438,16 +468,15 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
     if noise is None and perturb:
         noise = draw_noise(cfg, origins.shape[0], generator, origins.device)
-    near, far, active = ray_bounds(origins, dirs, cfg, bounds)
+    near, far, active, entry, exit_ = _ray_bounds(origins, dirs, cfg, bounds)
     fg = _foreground(model, origins, dirs, near, far, cfg, sampler, cos_anneal_ratio,
                      noise, create_graph)
     keep = active[:, None].to(fg["alpha"].dtype)  # (B, 1)
     bg_from = far  # where the background model's samples start
     if bounds:  # the stretch skipped before the hull or grid (`entry_alpha`)
-        chord_in, chord_out, _ = sphere_chord(origins, dirs)
         # the background starts where the sphere ends, never inside a narrowed interval
-        bg_from = torch.maximum(far, chord_out)
-        skipped = (near - chord_in)[:, 0].clamp_min(0.0)  # (B,)
+        bg_from = torch.maximum(far, exit_)
+        skipped = (near - entry)[:, 0].clamp_min(0.0)  # (B,)
         enter = entry_alpha(fg["entry_sdf"], fg["entry_slope"], skipped, fg["inv_s"])
         # the skipped stretch and the first section share the first sample's colour
         first = 1.0 - (1.0 - enter[:, None]) * (1.0 - fg["alpha"][:, :1])
@@ -455,9 +484,9 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     fg["alpha"] = fg["alpha"] * keep
     N = fg["t"].shape[1]
 
-    pts_norm = fg["pts"].norm(dim=-1)
-    inside = (pts_norm < 1.0).to(keep.dtype).detach()  # (B, N)
-    eikonal_mask = ((pts_norm < 1.2) & active[:, None]).to(keep.dtype).detach()
+    pts_norm = fg["pts"].norm(dim=-1)  # comparisons: no gradient, nothing to detach
+    inside = (pts_norm < 1.0).to(keep.dtype)  # (B, N)
+    eikonal_mask = ((pts_norm < 1.2) & active[:, None]).to(keep.dtype)
     use_bg = cfg.n_outside > 0 and model.background is not None
     if use_bg:
         alpha, rgb = _with_background(model, origins, dirs, fg, inside, bg_from, cfg, noise)
@@ -470,14 +499,14 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     if cfg.white_background and not use_bg:
         color = color + (1.0 - weight_sum)
 
-    w_in = weights[:, :N] * inside  # (B, N)
+    w_in = (weights[:, :N] if use_bg else weights) * inside  # (B, N)
     depth = (w_in * fg["t_mid"]).sum(-1, keepdim=True) / w_in.sum(-1, keepdim=True).clamp_min(1e-6)
     normal = (fg["gradients"] * w_in[..., None]).sum(dim=1)
     return RenderOutput(
         color=color, weight_sum=weight_sum, depth=depth, normal=normal, weights=weights,
         gradients=fg["gradients"], eikonal_mask=eikonal_mask, t=fg["t"],
         t_fine=fg["t_fine"], t_mid=fg["t_mid"], inside_sphere=inside, active=active,
-        s_val=(1.0 / model.variance.inv_s()).reshape(()),
+        s_val=(1.0 / fg["inv_s"]).reshape(()),
     )
 
 

@@ -23,13 +23,16 @@ Shapes: B rays, N samples per ray (sorted), n samples drawn per round.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from neus_l0.sampling import (
+    quantiles,
     sample_l0,
     sample_l0_sections,
     sample_neus_sections,
@@ -71,6 +74,10 @@ class Sections:
             (its ``prev_esti``).
         next_sdf: (B, N-1) the estimate at the end (``next_esti``); <= prev_sdf.
         inv_s: the fixed logistic sharpness of the round.
+        dist: (B, N-1) the sections' lengths ``z[:, 1:] - z[:, :-1]``, or None (then a
+            sampler that needs them computes them).
+        u: (B, n) the deterministic quantiles of a draw of n samples, or None (a draw of
+            another size, or without them, makes its own); `up_sample` makes them once.
     """
 
     z: Tensor
@@ -78,19 +85,58 @@ class Sections:
     prev_sdf: Tensor
     next_sdf: Tensor
     inv_s: float
+    dist: Tensor | None = None
+    u: Tensor | None = None
+
+    def lengths(self) -> Tensor:
+        """(B, N-1) the sections' lengths (`dist`, or computed)."""
+        return self.dist if self.dist is not None else self.z[:, 1:] - self.z[:, :-1]
+
+    def quantiles(self, n_samples: int) -> Tensor | None:
+        """`u` when it holds n_samples quantiles per ray, else None."""
+        return self.u if self.u is not None and self.u.shape[-1] == n_samples else None
 
 
 def transmittance(alpha: Tensor) -> Tensor:
     """Exclusive cumulative product of (1 - alpha + 1e-7) along the last axis (NeuS's).
 
+    Its backward is `_ExclusiveCumprod`'s (7 ops, where autograd's cumprod backward
+    dispatches 34 to allow zero factors, which alpha <= 1 never gives).
+
     Args:
-        alpha: (B, N).
+        alpha: (B, N) in [0, 1].
 
     Returns:
         (B, N) transmittance before each sample.
     """
-    ones = torch.ones_like(alpha[:, :1])
-    return torch.cumprod(torch.cat([ones, 1.0 - alpha + 1e-7], dim=-1), dim=-1)[:, :-1]
+    keep = 1.0 - alpha + 1e-7  # (B, N) >= 1e-7 > 0
+    if not keep.requires_grad:
+        return _exclusive_cumprod(keep)
+    return _ExclusiveCumprod.apply(keep)
+
+
+def _exclusive_cumprod(keep: Tensor) -> Tensor:
+    """(B, N) -> (B, N): ``out_i = prod_{j < i} keep_j`` (out_0 = 1)."""
+    return torch.cumprod(F.pad(keep[:, :-1], (1, 0), value=1.0), dim=-1)
+
+
+class _ExclusiveCumprod(torch.autograd.Function):
+    """`_exclusive_cumprod` of positive factors, with the backward in closed form:
+    ``d loss / d keep_j = (sum_{i > j} g_i out_i) / keep_j`` (a reversed cumulative sum)."""
+
+    @staticmethod
+    def forward(keep: Tensor) -> Tensor:
+        return _exclusive_cumprod(keep)
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        ctx.save_for_backward(inputs[0], output)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> Tensor:
+        keep, out = ctx.saved_tensors
+        after = torch.flip(torch.cumsum(torch.flip(grad * out, [-1]), dim=-1), [-1])  # i >= j
+        return F.pad(after[:, 1:], (0, 1)) / keep  # i > j
 
 
 def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor, inv_s: float) -> Sections:
@@ -107,19 +153,21 @@ def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor, inv_s: floa
     Returns:
         The `Sections`: weights (alpha times transmittance) and the SDF estimates, (B, N-1).
     """
-    inside = (radius[:, :-1] < 1.0) | (radius[:, 1:] < 1.0)  # (B, N-1)
+    inside = torch.minimum(radius[:, :-1], radius[:, 1:]) < 1.0  # (B, N-1): either end
     prev_sdf, next_sdf = sdf[:, :-1], sdf[:, 1:]
     dist = z[:, 1:] - z[:, :-1]
     mid_sdf = 0.5 * (prev_sdf + next_sdf)
     cos_val = (next_sdf - prev_sdf) / (dist + 1e-5)
-    prev_cos = torch.cat([torch.zeros_like(cos_val[:, :1]), cos_val[:, :-1]], dim=-1)
+    prev_cos = F.pad(cos_val[:, :-1], (1, 0))  # the previous section's (0 before the first)
     cos_val = torch.minimum(prev_cos, cos_val).clip(-1e3, 0.0) * inside
-    prev_esti = mid_sdf - cos_val * dist * 0.5
-    next_esti = mid_sdf + cos_val * dist * 0.5
+    half = cos_val * dist * 0.5
+    prev_esti = mid_sdf - half
+    next_esti = mid_sdf + half
     prev_cdf = torch.sigmoid(prev_esti * inv_s)
     next_cdf = torch.sigmoid(next_esti * inv_s)
     alpha = (prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)
-    return Sections(z, alpha * transmittance(alpha), prev_esti, next_esti, float(inv_s))
+    return Sections(z, alpha * transmittance(alpha), prev_esti, next_esti, float(inv_s),
+                    dist=dist)
 
 
 def section_to_point_weights(z: Tensor, section_weights: Tensor, placement: str = "midpoint",
@@ -194,7 +242,8 @@ class HVSSampler:
 
     def draw(self, sections: Sections, n_samples: int) -> Tensor:
         """Deterministic `sample_pdf` on the sections; (B, n_samples)."""
-        return sample_pdf(sections.z, sections.weights, n_samples, det=True)
+        return sample_pdf(sections.z, sections.weights, n_samples, det=True,
+                          u=sections.quantiles(n_samples))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -230,8 +279,8 @@ class L0Sampler:
             interpolant only the place inside a section: `sample_l0_sections`; placement,
             as_density, blur and pad are then unused) or ``interpolant`` (the interpolant's
             mass decides each stretch's share, the paper's draw: `sample_l0`).
-        compile: draw through `torch.compile` (``exp`` and ``linear`` only; compiled, the
-            ``inverse`` kind's all-zero rays came out non-finite, so it stays eager).
+        compile: deprecated, no effect (one warning): ``train.compile=true`` compiles the
+            whole training step, the draw included (see `warn_sampler_compile`).
     """
 
     def __init__(self, name: str = "l0", kind: str = "exp", pad: float = 0.0,
@@ -249,8 +298,8 @@ class L0Sampler:
         self.pad_mode, self.blur = pad_mode, blur
         self.placement, self.as_density, self.masses = placement, as_density, masses
         self._draw = sample_l0
-        if compile and kind in ("exp", "linear"):
-            self._draw = torch.compile(sample_l0, dynamic=True)
+        if compile:
+            warn_sampler_compile()
 
     def __repr__(self) -> str:
         return (f"L0Sampler(name={self.name!r}, kind={self.kind!r}, pad={self.pad}, "
@@ -259,7 +308,20 @@ class L0Sampler:
                 f"base_inv_s={self.base_inv_s})")
 
     def point_weights(self, sections: Sections) -> tuple[Tensor, Tensor]:
-        """The nodes and weights the L0 interpolation runs on, before maxblur; (B, M) each."""
+        """The nodes and weights the L0 interpolation runs on, before maxblur; (B, M) each.
+
+        Without a pad the draw does not depend on each ray's scale of the weights (they are
+        divided by their maximum), so the mean-length factor of ``as_density`` and the
+        ``relative`` division by the mean are left out there (fewer ops, same samples to
+        rounding; a ray holding a non-finite weight then loses that weight only, where
+        the division by its non-finite mean made it uniform).
+        """
+        if self.pad == 0.0 and self.placement == "midpoint":
+            length = sections.lengths()  # (B, N-1)
+            w = sections.weights
+            if self.as_density:
+                w = w / torch.maximum(length, 1e-3 * length.mean(dim=-1, keepdim=True))
+            return torch.add(sections.z[:, :-1], length, alpha=0.5), w
         t, w = section_to_point_weights(sections.z, sections.weights, self.placement,
                                         self.as_density)
         if self.pad_mode == "relative":
@@ -273,10 +335,29 @@ class L0Sampler:
         """Deterministic `sample_l0` on the point weights (or `sample_l0_sections` on the
         sections); (B, n_samples)."""
         if self.masses == "sections":
-            return sample_l0_sections(sections.z, sections.weights, n_samples, self.kind)
+            return sample_l0_sections(sections.z, sections.weights, n_samples, self.kind,
+                                      u=sections.quantiles(n_samples))
         t, w = self.point_weights(sections)
         return self._draw(t, w, n_samples, kind=self.kind, det=True, blur=self.blur,
-                          pad=self.pad)
+                          pad=self.pad, u=sections.quantiles(n_samples))
+
+
+_COMPILE_WARNED = False
+
+
+def warn_sampler_compile() -> None:
+    """Warn (once per process) that ``sampler.compile`` no longer does anything.
+
+    The draw compiled alone gave 1.05x on a CPU step and never ran on CUDA; the whole-step
+    compile (``train.compile=true``, `neus_l0.compile_step`) traces the draw with the rest
+    of the step in one graph, so the option is kept only so that old configs still load.
+    """
+    global _COMPILE_WARNED
+    if not _COMPILE_WARNED:
+        _COMPILE_WARNED = True
+        warnings.warn("sampler.compile (render.compile_sampler) is deprecated and has no "
+                      "effect: use train.compile=true to compile the whole training step",
+                      FutureWarning, stacklevel=3)
 
 
 def _l0(cfg: SamplerConfig) -> L0Sampler:
@@ -299,7 +380,7 @@ SAMPLERS = tuple(REGISTRY)
 def build_sampler(cfg: SamplerConfig | str) -> Sampler:
     """Build the sampler a `SamplerConfig` (or a bare name, with defaults) describes.
 
-    Build it once (per run, or per process): ``compile=True`` compiles at the first draw.
+    ``cfg.compile`` is deprecated and ignored (one warning; `warn_sampler_compile`).
     """
     if isinstance(cfg, str):
         from neus_l0.config import SamplerConfig
@@ -307,6 +388,8 @@ def build_sampler(cfg: SamplerConfig | str) -> Sampler:
         cfg = SamplerConfig(name=cfg)
     if cfg.name not in REGISTRY:
         raise ValueError(f"unknown sampler {cfg.name!r} (choose from {', '.join(SAMPLERS)})")
+    if cfg.compile:
+        warn_sampler_compile()
     return REGISTRY[cfg.name](cfg)
 
 
@@ -338,24 +421,26 @@ def up_sample(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor,
         return z, z[:, :0]
     per_round = n_importance // steps
     B = z.shape[0]
+    o, d = origins[:, None, :], dirs[:, None, :]  # (B, 1, 3)
 
     def sdf_at(t: Tensor) -> tuple[Tensor, Tensor]:
-        pts = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (B, n, 3)
-        sdf = sdf_fn(pts.reshape(-1, 3)).to(t.dtype).reshape(B, t.shape[1])
+        """(B, n) positions -> the SDF and the distance to the origin there, (B, n) each."""
+        pts = torch.addcmul(o, d, t[..., None])  # (B, n, 3)
+        sdf = sdf_fn(pts.view(-1, 3)).to(t.dtype).view(B, t.shape[1])
         return sdf, pts.norm(dim=-1)
 
     new_all = []
     with torch.no_grad():
+        u = quantiles((B,), per_round, True, None, z.dtype, z.device)  # shared by the rounds
         sdf, radius = sdf_at(z)
         for i in range(steps):
             sections = upsample_section_weights(z, sdf, radius, sampler.base_inv_s * 2**i)
+            sections.u = u
             new_z = sampler.draw(sections, per_round)  # (B, per_round)
             new_all.append(new_z)
-            if i + 1 == steps:
-                z, _ = merge_sorted(z, new_z)
-            else:
+            z, order = torch.sort(torch.cat([z, new_z], dim=-1), dim=-1)  # one sort a round
+            if i + 1 < steps:  # the values follow the same order
                 new_sdf, new_radius = sdf_at(new_z)
-                z_all, sdf = merge_sorted(z, new_z, sdf, new_sdf)
-                _, radius = merge_sorted(z, new_z, radius, new_radius)
-                z = z_all
+                sdf = torch.gather(torch.cat([sdf, new_sdf], dim=-1), -1, order)
+                radius = torch.gather(torch.cat([radius, new_radius], dim=-1), -1, order)
     return z, torch.cat(new_all, dim=-1)

@@ -126,14 +126,18 @@ def _prepare_weights(weights: Tensor, dtype: torch.dtype, blur: bool, pad: float
         (R, N) weights in {0} U [tiny, 1] (in [tiny, 1] with blur and pad > 0); a ray of
         zeros stays zeros.
     """
-    w = weights.detach().to(dtype)
-    w = maxblur(w, pad) if blur else sanitize_weights(w)
-    wmax = w.amax(dim=-1, keepdim=True)  # (R, 1)
-    w = w / torch.where(wmax > 0, wmax, 1.0)
+    w = weights.to(dtype)  # the samplers run without gradient: no detach needed
+    # without blur only NaN and inf need replacing here: negative weights end up below tiny
+    # after the division (by a positive max, or by tiny when no weight is positive) and the
+    # threshold below zeroes them
+    w = maxblur(w, pad) if blur else torch.nan_to_num(w, nan=0.0, posinf=0.0, neginf=0.0)
+    # divided by the ray's max, at least tiny: a ray of zeros stays zeros, and a ray whose
+    # max is sub-normal is scaled up by 1 / tiny instead (the draw does not depend on scale)
+    w = w / w.amax(dim=-1, keepdim=True).clamp_min_(torch.finfo(dtype).tiny)  # (R, N)
     tiny = torch.finfo(dtype).tiny
     if _strictly_positive(blur, pad):
         return w.clamp_min_(tiny)
-    return w.masked_fill_(w < tiny, 0.0)
+    return F.threshold(w, tiny, 0.0)  # w if w > tiny else 0: one op
 
 
 def _strictly_positive(blur: bool, pad: float) -> bool:
@@ -176,8 +180,8 @@ def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
     Args:
         mass: (R, M) finite non-negative piece masses.
-        d: (R, M) piece lengths, used as masses for rays whose ``mass`` sums to 0; where the
-            lengths sum to 0 too, every piece gets mass 1.
+        d: (R, M) piece lengths, used as masses (plus sqrt(tiny), so that a ray of
+            zero-length pieces gets equal masses) for rays whose ``mass`` sums to 0.
 
     Returns:
         lo: (R, M) cdf at the start of each piece (exactly the previous piece's ``hi``).
@@ -185,8 +189,7 @@ def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         degenerate: (R, 1) bool, True where ``mass`` was replaced.
     """
     degenerate = mass.sum(dim=-1, keepdim=True) <= 0  # (R, 1)
-    no_length = d.sum(dim=-1, keepdim=True) <= 0
-    mass = torch.addcmul(mass, degenerate.to(mass.dtype), d + no_length.to(d.dtype))
+    mass = torch.where(degenerate, d + _flat(d.dtype), mass)
     csum = torch.cumsum(mass, dim=-1)
     hi = csum / csum[:, -1:]
     lo = torch.nn.functional.pad(hi[:, :-1], (1, 0))
@@ -220,9 +223,8 @@ def _finish(samples: Tensor, t: Tensor) -> Tensor:
     Returns:
         (R, n) sorted samples inside [t_0, t_last].
     """
-    samples = torch.maximum(samples, t[:, :1])
-    samples = torch.cummax(samples, dim=-1).values
-    return torch.minimum(samples, t[:, -1:])
+    # max(cummax(s), t_0) == cummax(max(s, t_0)): one clamp against both ends after
+    return torch.clamp(torch.cummax(samples, dim=-1).values, t[:, :1], t[:, -1:])
 
 
 # ----------------------------------------------------------------------------- samplers
@@ -230,7 +232,7 @@ def _finish(samples: Tensor, t: Tensor) -> Tensor:
 
 @torch.no_grad()
 def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
-               generator: torch.Generator | None = None) -> Tensor:
+               generator: torch.Generator | None = None, u: Tensor | None = None) -> Tensor:
     """NeRF's hierarchical volume sampling: inverse transform of a piecewise-constant PDF.
 
     Args:
@@ -239,6 +241,7 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
         n_samples: n, samples per ray.
         det: midpoint quantiles ``(k + 0.5) / n`` instead of stratified random ones.
         generator: random source for ``det=False``.
+        u: (R, n) quantiles drawn beforehand (see `sample_l0`).
 
     Returns:
         (..., n) sorted samples inside [bins_0, bins_N], without gradient.
@@ -249,21 +252,23 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
     if weights.shape[-1] < 1:
         raise ValueError("sample_pdf needs at least one bin")
     batch = bins.shape[:-1]
-    bins = bins.detach().reshape(-1, bins.shape[-1])  # (R, N+1)
-    w = _prepare_weights(weights.reshape(-1, weights.shape[-1]), bins.dtype, False, 0.0)
-    d = (bins[:, 1:] - bins[:, :-1]).clamp_min(0)  # (R, N)
+    bins = _rows(bins)  # (R, N+1); no gradient here, so no detach
+    w = _prepare_weights(_rows(weights), bins.dtype, False, 0.0)
+    lo_edge = bins[:, :-1]
+    d = (bins[:, 1:] - lo_edge).clamp_min_(0)  # (R, N)
     lo, hi, _ = _cdf(w, d)
-    u = quantiles((bins.shape[0],), n_samples, det, generator, bins.dtype, bins.device)
+    if u is None:
+        u = quantiles((bins.shape[0],), n_samples, det, generator, bins.dtype, bins.device)
     idx = _locate(hi, u)  # (R, n)
     q = _fraction(u, lo, _inverse_width(lo, hi), idx)
-    out = torch.addcmul(torch.gather(bins, -1, idx), q, torch.gather(d, -1, idx))
-    return _finish(out, bins).reshape(*batch, n_samples)
+    out = torch.addcmul(torch.gather(lo_edge, -1, idx), q, torch.gather(d, -1, idx))
+    return _unrows(_finish(out, bins), batch)
 
 
 @torch.no_grad()
 def sample_l0(t: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
               det: bool = True, blur: bool = True, pad: float = 0.01,
-              generator: torch.Generator | None = None) -> Tensor:
+              generator: torch.Generator | None = None, u: Tensor | None = None) -> Tensor:
     """The L0-Sampler: inverse transform of piecewise exponential / inverse / linear weights.
 
     Args:
@@ -276,6 +281,8 @@ def sample_l0(t: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
         blur: apply :func:`maxblur` with ``pad`` first (the paper does).
         pad: maxblur's pad.
         generator: random source for ``det=False``.
+        u: (R, n) the quantiles (`quantiles`) drawn beforehand, R the rays of the flattened
+            batch (None: drawn here from `det` and `generator`).
 
     Returns:
         (..., n) sorted samples inside [t_0, t_{N-1}], without gradient.
@@ -288,14 +295,26 @@ def sample_l0(t: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
     if t.shape[-1] < 2:
         raise ValueError("sample_l0 needs at least two positions per ray (N >= 2)")
     batch = t.shape[:-1]
-    t = t.detach().reshape(-1, t.shape[-1])  # (R, N)
-    w = _prepare_weights(weights.reshape(t.shape), t.dtype, blur, pad)  # (R, N)
+    t, weights = _rows(t), _rows(weights)  # (R, N); no gradient here, so no detach
+    w = _prepare_weights(weights, t.dtype, blur, pad)  # (R, N)
     a, b = w[:, :-1], w[:, 1:]  # (R, M) endpoint weights of the M = N-1 intervals
-    d = (t[:, 1:] - t[:, :-1]).clamp_min_(0)  # (R, M) lengths
-    u = quantiles((t.shape[0],), n_samples, det, generator, t.dtype, t.device)  # (R, n)
+    t_lo = t[:, :-1]
+    d = (t[:, 1:] - t_lo).clamp_min_(0)  # (R, M) lengths
+    if u is None:
+        u = quantiles((t.shape[0],), n_samples, det, generator, t.dtype, t.device)  # (R, n)
     zeros = not _strictly_positive(blur, pad)  # can a piece have a zero end?
     sampler = {"exp": _fused_exp, "inverse": _fused_inverse, "linear": _fused_linear}[kind]
-    return _finish(sampler(a, b, d, t[:, :-1], u, zeros), t).reshape(*batch, n_samples)
+    return _unrows(_finish(sampler(a, b, d, t_lo, u, zeros), t), batch)
+
+
+def _rows(x: Tensor) -> Tensor:
+    """(..., K) -> (R, K), without an op when x is already 2-D."""
+    return x if x.dim() == 2 else x.reshape(-1, x.shape[-1])
+
+
+def _unrows(x: Tensor, batch: torch.Size) -> Tensor:
+    """(R, K) -> (..., K) for the leading shape `batch`, without an op when it is 1-D."""
+    return x if len(batch) == 1 else x.reshape(*batch, x.shape[-1])
 
 
 def _growth(a: Tensor, b: Tensor, zeros: bool) -> tuple[Tensor, Tensor]:
@@ -319,9 +338,10 @@ def _growth(a: Tensor, b: Tensor, zeros: bool) -> tuple[Tensor, Tensor]:
     flat = _flat(a.dtype)
     diff = b - a
     E = (diff / a).add_(flat)
-    L = torch.log1p(diff.abs().div_(torch.minimum(a, b)).add_(flat)).copysign_(diff)
+    low = torch.minimum(a, b)
+    L = torch.log1p(diff.abs().div_(low).add_(flat)).copysign_(diff)
     if zeros:
-        empty = (a <= 0) | (b <= 0)
+        empty = low <= 0  # a == 0 or b == 0
         E = E.masked_fill_(empty, -1.0)
         L = L.masked_fill_(empty, -float("inf"))
     return E, L
@@ -627,7 +647,8 @@ def _boundary_values(rho: Tensor, d: Tensor, kind: str) -> Tensor:
 
 @torch.no_grad()
 def sample_l0_sections(z: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
-                       det: bool = True, generator: torch.Generator | None = None) -> Tensor:
+                       det: bool = True, generator: torch.Generator | None = None,
+                       u: Tensor | None = None) -> Tensor:
     """The L0 interpolant inside NeuS's sections, each section keeping its own mass.
 
     The L0-Sampler's nodes are the section midpoints ``m_j`` with the section densities
@@ -647,6 +668,8 @@ def sample_l0_sections(z: Tensor, weights: Tensor, n_samples: int, kind: str = "
         kind: ``exp``, ``inverse`` or ``linear``.
         det: midpoint quantiles ``(k + 0.5) / n`` instead of stratified random ones.
         generator: random source for ``det=False``.
+        u: (R, n) the quantiles drawn beforehand (`quantiles`), R the rays of the flattened
+            batch (None: drawn here from `det` and `generator`).
 
     Returns:
         (..., n) sorted samples inside [z_0, z_{N-1}], without gradient.
@@ -660,15 +683,16 @@ def sample_l0_sections(z: Tensor, weights: Tensor, n_samples: int, kind: str = "
         raise ValueError(f"z (..., N) and weights (..., N-1) disagree: "
                          f"{tuple(z.shape)} vs {tuple(weights.shape)}")
     batch = z.shape[:-1]
-    z = z.detach().reshape(-1, N)  # (R, N)
-    w = _prepare_weights(weights.reshape(-1, N - 1), z.dtype, False, 0.0)  # (R, M)
-    u = quantiles((z.shape[0],), n_samples, det, generator, z.dtype, z.device)  # (R, n)
+    z, weights = _rows(z.detach()), _rows(weights)  # (R, N), (R, M)
+    w = _prepare_weights(weights, z.dtype, False, 0.0)  # (R, M)
+    if u is None:
+        u = quantiles((z.shape[0],), n_samples, det, generator, z.dtype, z.device)  # (R, n)
     if kind == "exp":
         out = _sections_exp(z, w, u)
     else:
         a, b, d, t_lo = _half_pieces(z, w, kind)  # (R, 2M) each
         out = {"inverse": _fused_inverse, "linear": _fused_linear}[kind](a, b, d, t_lo, u, True)
-    return _finish(out, z).reshape(*batch, n_samples)
+    return _unrows(_finish(out, z), batch)
 
 
 def _section_geometry(z: Tensor, w: Tensor, kind: str) -> tuple[Tensor, Tensor, Tensor]:

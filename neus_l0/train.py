@@ -199,7 +199,9 @@ class StepInputs:
             when masks are unused).
         noise: the jitter's uniforms (None: no jitter).
         eikonal_idx: (k,) the Eikonal subset's samples (None: all samples).
-        anneal: () NeuS's cos-anneal ratio at this iteration.
+        anneal: () NeuS's cos-anneal ratio at this iteration; the number 1.0 when
+            `train.anneal_end` is 0 (no annealing: constant over the run, so a compiled
+            step sees the same input every step, and the slope takes fewer ops).
         mask_scale: the pixel pool's fraction (1: rays drawn from every pixel).
     """
 
@@ -209,7 +211,7 @@ class StepInputs:
     mask: Tensor
     noise: RenderNoise | None
     eikonal_idx: Tensor | None
-    anneal: Tensor
+    anneal: Tensor | float
     mask_scale: float
 
 
@@ -230,8 +232,9 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
                                   scene.device)
     mask = batch["mask"]
     mask = (mask > 0.5).float() if cfg.train.mask_weight > 0 else torch.ones_like(mask)
-    anneal = torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
-                          device=scene.device)
+    anneal = (1.0 if cfg.train.anneal_end <= 0 else
+              torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
+                           device=scene.device))
     return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
                       anneal, mask_scale)
 
@@ -250,8 +253,8 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
                        eikonal_idx=inputs.eikonal_idx)
     samples = out.active.sum() * out.t.shape[1]
-    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]
-    return losses["loss"], torch.stack([v.detach().reshape(()).float() for v in values])
+    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]  # () each
+    return losses["loss"], torch.stack(values).detach().float()  # stack promotes the count
 
 
 @dataclasses.dataclass
@@ -292,8 +295,8 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
         batch_size: rays of this step (None: `train.batch_size`).
         setup: the run's hull bounds, sampler, pixel pool and compiled step (`StepSetup`).
             None: no bounds, no pool, eager, and the config's sampler built for this call
-            (a loop should build a `StepSetup` once: with ``sampler.compile`` a sampler
-            built per call would compile per call).
+            (a loop should build a `StepSetup` once, so that the sampler and a
+            compiled step are built once).
 
     Returns:
         (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order

@@ -381,3 +381,22 @@ def test_eikonal_subset_estimates_the_full_term():
     assert (sub.mean() - full).abs() < 0.05 * full
     assert torch.isclose(eikonal_subset(grads, torch.zeros_like(mask), 0.5, g),
                          torch.zeros(()))
+
+
+def test_transmittance_backward_equals_cumprods_in_float64():
+    """The closed-form backward of `transmittance` against autograd's cumprod backward."""
+    g = torch.Generator().manual_seed(0)
+    alpha = torch.rand(6, 9, generator=g, dtype=torch.float64)
+    alpha[0, 4] = 1.0  # an opaque sample: factor 1e-7
+    alpha[1] = 0.0
+    w = torch.randn(6, 9, generator=g, dtype=torch.float64)
+    a1 = alpha.clone().requires_grad_(True)
+    ones = torch.ones(6, 1, dtype=torch.float64)
+    ref = torch.cumprod(torch.cat([ones, 1.0 - a1 + 1e-7], dim=-1), dim=-1)[:, :-1]
+    (g_ref,) = torch.autograd.grad((ref * w).sum(), a1)
+    a2 = alpha.clone().requires_grad_(True)
+    got = transmittance(a2)
+    (g_got,) = torch.autograd.grad((got * w).sum(), a2)
+    torch.testing.assert_close(got, ref.detach(), rtol=0, atol=1e-15)
+    torch.testing.assert_close(g_got, g_ref, rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradcheck(transmittance, (alpha[:, :5].clone().requires_grad_(True),))

@@ -20,7 +20,7 @@ Variants: ``baseline`` (NeuS), ``sphere`` (`render.cull_outside_sphere`), ``grid
 (`render.occupancy.enabled`), ``grid+eik0.25`` (also `train.eikonal_fraction=0.25`),
 ``eik0.25`` alone, and on CUDA ``amp-bf16`` / ``amp-fp16`` and ``grid+amp-bf16``. With
 ``--compile`` a ``compile-color`` variant runs the colour network through `torch.compile`,
-``compile-sampler`` the fine-sample draw (`sampler.compile`), and ``compile-step`` the whole
+and ``compile-step`` the whole
 render and loss (`train.compile`, with the analytic SDF gradient, whose eager cost is the
 ``analytic`` variant; ``finite-difference`` is the other double-backward-free gradient).
 """
@@ -71,7 +71,6 @@ def variants(device: str, compile_: bool) -> dict[str, list[str]]:
         v["grid+amp-bf16"] = ["render.occupancy.enabled=true", "train.amp=bf16"]
     if compile_:
         v["compile-color"] = []
-        v["compile-sampler"] = ["sampler.compile=true"]
         v["compile-step"] = ["train.compile=true", "model.sdf.gradient=analytic"]
     return v
 

@@ -28,11 +28,14 @@ def pixel_rays(intrinsics: torch.Tensor, c2w: torch.Tensor,
     B = xy.shape[0]
     K = intrinsics.expand(B, 3, 3) if intrinsics.dim() == 2 else intrinsics
     T = c2w.expand(B, 4, 4) if c2w.dim() == 2 else c2w
-    # K^-1 [x, y, 1] for an upper-triangular K, without a batched inverse
-    yc = (xy[:, 1] - K[:, 1, 2]) / K[:, 1, 1]  # (B,)
-    xc = (xy[:, 0] - K[:, 0, 2] - K[:, 0, 1] * yc) / K[:, 0, 0]  # (B,)
+    # K^-1 [x, y, 1] for an upper-triangular K, without a batched inverse; one unbind
+    # gives K's entries (fewer ops than indexing each)
+    k00, k01, k02, _, k11, k12, _, _, _ = K.reshape(B, 9).unbind(1)  # (B,) each
+    x, y = xy.unbind(1)
+    yc = (y - k12) / k11  # (B,)
+    xc = (x - k02 - k01 * yc) / k00  # (B,)
     d_cam = torch.stack([xc, yc, torch.ones_like(xc)], dim=-1)  # (B, 3)
-    dirs = torch.einsum("bij,bj->bi", T[:, :3, :3], d_cam)  # (B, 3)
+    dirs = torch.bmm(T[:, :3, :3], d_cam[..., None])[..., 0]  # (B, 3) = R d_cam
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     return T[:, :3, 3], dirs
 

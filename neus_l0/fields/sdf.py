@@ -28,7 +28,7 @@ from torch.nn.utils.parametrizations import weight_norm
 from neus_l0.config import SDFConfig
 from neus_l0.errors import ConfigError
 from neus_l0.fields.encodings import HashGridEncoding, build_encoding
-from neus_l0.fields.linear import layer_weight, linear
+from neus_l0.fields.linear import layer_weight_t, linear
 
 #: Choices of `SDFConfig.gradient`.
 GRADIENT_METHODS = ("autograd", "analytic", "finite-difference")
@@ -117,14 +117,14 @@ class SDFNetwork(nn.Module):
             if i in self.skip:
                 h = torch.cat([h, inputs], dim=-1) / math.sqrt(2.0)
                 jac = torch.cat([jac, jin], dim=-1) / math.sqrt(2.0)
-            w = layer_weight(lin)  # (out, in)
+            wt = layer_weight_t(lin)  # (in, out)
             if i == last:
-                h = F.linear(h, w, lin.bias)
-                jac = jac @ w[:1].t()  # (N, 3, 1): the SDF's row only
+                h = torch.addmm(lin.bias, h, wt) if lin.bias is not None else h @ wt
+                jac = jac @ wt[:, :1]  # (N, 3, 1): the SDF's column only
             else:
-                z = F.linear(h, w, lin.bias)
+                z = torch.addmm(lin.bias, h, wt) if lin.bias is not None else h @ wt
                 h = F.softplus(z, self.beta)
-                jac = (jac @ w.t()) * torch.sigmoid(z * self.beta)[:, None, :]
+                jac = (jac @ wt) * torch.sigmoid(z * self.beta)[:, None, :]
         return self._unscale(h), jac[..., 0]
 
     def finite_difference_step(self) -> Tensor | float:
