@@ -275,7 +275,7 @@ def plot_ray_weights(path: str | Path, ray: PitRay, profiles: list[tuple[str, st
             ax.stairs(p.hvs_pdf, p.t, color=COLORS["hvs"], lw=1.5,
                       label="HVS: piecewise-constant PDF of the weights")
             ax.plot(p.l0_x, p.l0_pdf, color=COLORS["l0"], lw=1.5,
-                    label="L0: piecewise-exponential a(b/a)^s after maxblur")
+                    label="L0: the density its draw uses (exponential pieces)")
             ax.set_zorder(ax2.get_zorder() + 1)
             ax.patch.set_visible(False)
             trans = ax.get_xaxis_transform()
