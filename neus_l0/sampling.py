@@ -634,14 +634,12 @@ def _boundary_values(rho: Tensor, d: Tensor, kind: str) -> Tensor:
     f = torch.where(span > 0, d[:, :-1] / torch.where(span > 0, span, 1.0), 0.5)
     if kind == "linear":
         inner = torch.lerp(a, b, f)
+    elif kind == "exp":  # a^(1-f) b^f: 0 where either is 0 (0^x = 0 for x > 0), no log
+        inner = a.pow(1.0 - f).mul_(b.pow(f))
     else:
         positive = (a > 0) & (b > 0)
         sa, sb = torch.where(positive, a, 1.0), torch.where(positive, b, 1.0)
-        if kind == "exp":
-            inner = torch.exp(torch.lerp(torch.log(sa), torch.log(sb), f))
-        else:
-            inner = 1.0 / torch.lerp(1.0 / sa, 1.0 / sb, f)
-        inner = torch.where(positive, inner, 0.0)
+        inner = torch.where(positive, 1.0 / torch.lerp(1.0 / sa, 1.0 / sb, f), 0.0)
     return torch.cat([rho[:, :1], inner, rho[:, -1:]], dim=-1)
 
 
