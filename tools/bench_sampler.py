@@ -3,7 +3,7 @@
 Usage:
     python tools/bench_sampler.py [--rays 4096] [--points 128] [--samples 64] [--repeat 50]
                                   [--device cpu|cuda|all] [--dtype float32|float64]
-                                  [--compile]
+                                  [--compile] [--count-ops]
 
 `sample_l0_sections` (the default `l0` draw) and `sample_neus_sections` (`neus-exact`) get the
 section weights as `sample_pdf` does. All samplers get the same NeuS-like rays: N sorted
@@ -60,6 +60,22 @@ def time_fn(fn, device: str, repeat: int, warmup: int = 5) -> list[float]:
     return times
 
 
+def count_ops(fn) -> int:
+    """aten ops one call of fn() dispatches (a `TorchDispatchMode` counter)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class _Count(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            _Count.n += 1
+            return func(*args, **(kwargs or {}))
+
+    with _Count():
+        fn()
+    return _Count.n
+
+
 def bench(device: str, args: argparse.Namespace) -> list[tuple[str, float, float, float]]:
     """(name, min ms, median ms, ratio of minima to sample_pdf) per sampler on one device.
 
@@ -88,6 +104,8 @@ def bench(device: str, args: argparse.Namespace) -> list[tuple[str, float, float
         fns["compiled pdf det"] = lambda: c_pdf(t, w_sec, n, det=True)
         fns["l0 exp det"] = lambda: sample_l0(t, w, n, kind="exp", det=True)
         fns["compiled l0 exp det"] = lambda: c_l0(t, w, n, kind="exp", det=True)
+    if args.count_ops:
+        return [(k, float(count_ops(fn)), float("nan"), float("nan")) for k, fn in fns.items()]
     per: dict[str, list[float]] = {k: [] for k in fns}
     rounds = 10
     for _ in range(rounds):
@@ -106,6 +124,8 @@ def main() -> None:
     p.add_argument("--device", default="all", choices=["cpu", "cuda", "all"])
     p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    p.add_argument("--count-ops", action="store_true",
+                   help="print the aten ops one call of each sampler dispatches (no timing)")
     p.add_argument("--compile", action="store_true",
                    help="also time torch.compile'd sample_l0 (exp) and sample_pdf")
     args = p.parse_args()
@@ -119,8 +139,14 @@ def main() -> None:
     for dev in devices:
         name = torch.cuda.get_device_name() if dev == "cuda" else "cpu"
         print(f"\n{dev} ({name})")
+        rows = bench(dev, args)
+        if args.count_ops:
+            print(f"{'sampler':<20} {'aten ops':>9}")
+            for k, n, _, _ in rows:
+                print(f"{k:<20} {int(n):>9}")
+            continue
         print(f"{'sampler':<20} {'min ms':>9} {'median ms':>10} {'x sample_pdf (min)':>19}")
-        for k, lo, med, ratio in bench(dev, args):
+        for k, lo, med, ratio in rows:
             print(f"{k:<20} {lo:>9.3f} {med:>10.3f} {ratio:>19.2f}")
 
 
