@@ -22,11 +22,14 @@ points in the scene's world units; `PointBound.for_scene` maps them with the sce
 from __future__ import annotations
 
 import math
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import Tensor
+
+from neus_l0.errors import SceneError
 
 #: The file `neus-l0 colmap` writes next to ``cameras_sphere.npz``.
 POINTS_FILE = "sparse_points.npz"
@@ -59,8 +62,15 @@ def read_points(path: str | Path, scale_mat: np.ndarray) -> tuple[np.ndarray, np
     Returns:
         points (M, 3) float64 in the normalised frame, track_len (M,) int64.
     """
-    with np.load(Path(path)) as z:
-        pts, track = z["points_world"].reshape(-1, 3), z["track_len"].reshape(-1)
+    try:
+        with np.load(Path(path)) as z:
+            pts, track = z["points_world"].reshape(-1, 3), z["track_len"].reshape(-1)
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+        raise SceneError(f"{path}: not a readable sparse_points.npz (points_world, track_len): "
+                         f"{type(exc).__name__}: {exc}") from None
+    if len(pts) != len(track) or not np.isfinite(pts).all():
+        raise SceneError(f"{path}: points_world must be finite and match track_len in length "
+                         f"({len(pts)} points, {len(track)} track lengths)")
     sm = np.asarray(scale_mat, dtype=np.float64)
     return (pts - sm[:3, 3]) @ np.linalg.inv(sm[:3, :3]).T, track.astype(np.int64)
 

@@ -703,6 +703,48 @@ def _section_geometry(z: Tensor, w: Tensor, kind: str) -> tuple[Tensor, Tensor, 
     return d, rho, _boundary_values(rho, d, kind)
 
 
+def _unscaled_half_pieces(z: Tensor, w: Tensor, kind: str
+                          ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The two pieces of each section before they are scaled to the section weights.
+
+    Section j, ``[z_j, z_{j+1}]`` with midpoint ``m_j``, becomes the pieces ``[z_j, m_j]``
+    (from ``g_j`` to ``rho_j``) and ``[m_j, z_{j+1}]`` (from ``rho_j`` to ``g_{j+1}``).
+
+    Args:
+        z: (R, M+1) sorted section ends. w: (R, M) prepared section weights.
+        kind: ``exp``, ``inverse`` or ``linear`` (how the end values are interpolated).
+
+    Returns:
+        a, b, half, t_lo: (R, 2M) piece start and end values, lengths and starts, in order;
+        d: (R, M) the section lengths.
+    """
+    R, M = w.shape
+    d, rho, g = _section_geometry(z, w, kind)
+    a = torch.stack([g[:, :-1], rho], dim=-1).reshape(R, 2 * M)
+    b = torch.stack([rho, g[:, 1:]], dim=-1).reshape(R, 2 * M)
+    half = (0.5 * d)[..., None].expand(R, M, 2).reshape(R, 2 * M)
+    t_lo = torch.stack([z[:, :-1], z[:, :-1] + 0.5 * d], dim=-1).reshape(R, 2 * M)
+    return a, b, half, t_lo, d
+
+
+def _section_shares(mass: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """Rescale the half pieces' masses so that each section carries its weight.
+
+    Args:
+        mass: (R, 2M) the interpolant's masses of the half pieces. w: (R, M) weights.
+
+    Returns:
+        mass: (R, 2M) rescaled (a section whose pieces carry no mass gives each half w / 2);
+        flat: (R, 2M) bool, the halves of those sections (to be drawn as constant pieces).
+    """
+    R, M = w.shape
+    mass = mass.reshape(R, M, 2)
+    inner = mass.sum(dim=-1, keepdim=True)  # (R, M, 1)
+    empty = inner <= 0  # no interpolant mass (a zero end): constant at the density
+    mass = torch.where(empty, 0.5, mass / torch.where(empty, 1.0, inner)).mul_(w[..., None])
+    return mass.reshape(R, 2 * M), empty.expand(R, M, 2).reshape(R, 2 * M)
+
+
 def _sections_exp(z: Tensor, w: Tensor, u: Tensor) -> Tensor:
     """`sample_l0_sections` for the exponential kind, fused: the growths are computed once.
 
@@ -715,20 +757,11 @@ def _sections_exp(z: Tensor, w: Tensor, u: Tensor) -> Tensor:
     Returns:
         (R, n) positions, sorted up to rounding.
     """
-    R, M = w.shape
-    d, rho, g = _section_geometry(z, w, "exp")
-    a = torch.stack([g[:, :-1], rho], dim=-1).reshape(R, 2 * M)  # half pieces, in order
-    b = torch.stack([rho, g[:, 1:]], dim=-1).reshape(R, 2 * M)
+    a, b, half, t_lo, _ = _unscaled_half_pieces(z, w, "exp")
     E, L = _growth(a, b, True)
-    half = (0.5 * d)[..., None].expand(R, M, 2).reshape(R, 2 * M)
-    mass = (a * E).div_(L).mul_(half).reshape(R, M, 2)  # the interpolant's masses
-    inner = mass.sum(dim=-1, keepdim=True)  # (R, M, 1)
-    empty = inner <= 0  # no interpolant mass (a zero end): constant at the density
-    mass = torch.where(empty, 0.5, mass / torch.where(empty, 1.0, inner)).mul_(w[..., None])
-    flat = empty.expand(R, M, 2).reshape(R, 2 * M)
+    mass, flat = _section_shares((a * E).div_(L).mul_(half), w)
     E, L = E.masked_fill(flat, _flat(E.dtype)), L.masked_fill(flat, _flat(E.dtype))
-    t_lo = torch.stack([z[:, :-1], z[:, :-1] + 0.5 * d], dim=-1).reshape(R, 2 * M)
-    return _draw_exp(E, L, mass.reshape(R, 2 * M), half, t_lo, u, True)
+    return _draw_exp(E, L, mass, half, t_lo, u, True)
 
 
 def l0_section_pieces(z: Tensor, weights: Tensor, kind: str = "exp"
@@ -750,31 +783,28 @@ def l0_section_pieces(z: Tensor, weights: Tensor, kind: str = "exp"
 
 
 def _half_pieces(z: Tensor, w: Tensor, kind: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The two pieces of each section, scaled so that the section's mass is its weight.
-
-    Section j, ``[z_j, z_{j+1}]`` with midpoint ``m_j``, becomes the pieces ``[z_j, m_j]``
-    (from ``g_j`` to ``rho_j``) and ``[m_j, z_{j+1}]`` (from ``rho_j`` to ``g_{j+1}``), both
-    multiplied by ``w_j`` over the interpolant's mass of the section (a scale changes no
-    shape). A section with weight whose pieces carry no mass (an exponential or inverse piece
-    with a zero end) becomes constant at its density.
+    """The two pieces of each section (`_unscaled_half_pieces`), scaled so that the section's
+    mass is its weight (a scale changes no shape); a section with weight whose pieces carry
+    no mass (an exponential or inverse piece with a zero end) becomes constant at w_j / d_j.
 
     Args:
         z: (R, M+1) sorted section ends. w: (R, M) prepared section weights.
         kind: ``exp``, ``inverse`` or ``linear``.
 
     Returns:
-        a, b, d, t_lo: (R, 2M) piece start and end values, lengths and starts, in order.
+        a, b, d, t_lo: (R, 2M) piece start and end values (densities, divided by the ray's
+        largest value: a section's pieces integrate to its weight over that), lengths and
+        starts, in order.
     """
-    d, rho, g = _section_geometry(z, w, kind)
-    inner = (piece_mass(g[:, :-1], rho, kind) + piece_mass(rho, g[:, 1:], kind)) * (0.5 * d)
-    scale = torch.where(inner > 0, w / torch.where(inner > 0, inner, 1.0), 0.0)  # (R, M)
-    flat = (inner <= 0) & (w > 0)
-    lo_v = torch.where(flat, rho, g[:, :-1] * scale)
-    mid_v = torch.where(flat, rho, rho * scale)
-    hi_v = torch.where(flat, rho, g[:, 1:] * scale)
-    a = torch.stack([lo_v, mid_v], dim=-1).flatten(-2)  # (R, 2M)
-    b = torch.stack([mid_v, hi_v], dim=-1).flatten(-2)
-    half = 0.5 * d
-    d2 = torch.stack([half, half], dim=-1).flatten(-2)
-    t_lo = torch.stack([z[:, :-1], z[:, :-1] + half], dim=-1).flatten(-2)
-    return a, b, d2, t_lo
+    a, b, half, t_lo, d = _unscaled_half_pieces(z, w, kind)
+    own = piece_mass(a, b, kind) * half  # (R, 2M) the interpolant's masses
+    mass, flat = _section_shares(own, w)
+    scale = torch.where(own > 0, mass / torch.where(own > 0, own, 1.0), 0.0)
+    level = (w / torch.where(d > 0, d, 1.0)).repeat_interleave(2, dim=-1)  # w_j / d_j
+    a = torch.where(flat, level, a * scale)
+    b = torch.where(flat, level, b * scale)
+    # the fused samplers take values in {0} U [tiny, 1]: one scale per ray changes no draw
+    top = torch.maximum(a, b).amax(dim=-1, keepdim=True).clamp_min(torch.finfo(a.dtype).tiny)
+    tiny = torch.finfo(a.dtype).tiny
+    a, b = a / top, b / top
+    return a.masked_fill_(a < tiny, 0.0), b.masked_fill_(b < tiny, 0.0), half, t_lo

@@ -116,3 +116,19 @@ def test_run_uses_the_box_only_when_asked_and_without_masks(tmp_path):
     (box,) = run_hull(scene, on, tmp_path / "run")
     assert isinstance(box, PointBound) and box.n_points == 200
     assert not (tmp_path / "run" / "hull.pt").exists()
+
+
+def test_a_damaged_points_file_is_a_clear_error(tmp_path):
+    import numpy as np
+    import pytest
+
+    from neus_l0.errors import SceneError
+    from neus_l0.point_bound import read_points
+
+    bad = tmp_path / "sparse_points.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(SceneError, match="sparse_points.npz"):
+        read_points(bad, np.eye(4))
+    np.savez(bad, points_world=np.array([[0.0, np.nan, 0.0]]), track_len=np.array([3]))
+    with pytest.raises(SceneError, match="finite"):
+        read_points(bad, np.eye(4))

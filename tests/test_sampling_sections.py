@@ -110,3 +110,32 @@ def test_outputs_are_always_finite_sorted_and_in_range(data, n, kind, det, dtype
     out = sample_l0_sections(z, w, n, kind, det=det,
                              generator=torch.Generator().manual_seed(seed))
     _check(out, z, n)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_sections_next_to_empty_ones_keep_their_share(kind):
+    """Zero weights beside a section (no interpolant mass for exp / inverse pieces there):
+    its share is still its weight's, as hvs gives it, in every kind."""
+    z = torch.tensor([[0.0, 0.1, 0.35, 0.4, 0.9, 1.0]], dtype=torch.float64)
+    w = torch.tensor([[0.0, 0.6, 0.0, 0.3, 0.1]], dtype=torch.float64)
+    out = sample_l0_sections(z, w, 1000, kind)
+    section = torch.searchsorted(z, out, right=True)
+    torch.testing.assert_close(section, torch.searchsorted(z, sample_pdf(z, w, 1000),
+                                                           right=True))
+    share = torch.stack([(section == j + 1).double().mean() for j in range(5)])
+    torch.testing.assert_close(share, w[0] / w.sum(), atol=2e-3, rtol=0)
+
+
+def test_plotted_pieces_integrate_to_each_sections_weight_in_every_kind():
+    from neus_l0.sampling import l0_section_pieces, piece_mass
+
+    z = torch.tensor([[0.0, 0.1, 0.35, 0.4, 0.9, 1.0]], dtype=torch.float64)
+    w = torch.tensor([[0.0, 0.6, 0.0, 0.3, 0.1]], dtype=torch.float64)
+    for kind in KINDS:
+        a, b, d, _ = l0_section_pieces(z, w, kind)
+        mass = (piece_mass(a, b, kind) * d).reshape(5, 2).sum(-1)
+        # a flat section (constant at w_j / d_j) carries w_j too (up to one scale per ray)
+        flat = (piece_mass(a, b, kind) == 0).reshape(5, 2).all(-1)
+        mass = torch.where(flat, a.reshape(5, 2)[:, 0] * d.reshape(5, 2).sum(-1), mass)
+        torch.testing.assert_close(mass / mass.sum(), w[0] / w.sum(), atol=1e-12, rtol=0,
+                                   msg=kind)
