@@ -362,11 +362,13 @@ class RenderOutput:
 def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
                 cfg: RenderConfig, sampler: Sampler | SamplerConfig | str,
                 cos_anneal_ratio: float | Tensor,
-                noise: RenderNoise | None, create_graph: bool) -> dict[str, Tensor]:
+                noise: RenderNoise | None, create_graph: bool,
+                in_sphere: bool = False) -> dict[str, Tensor]:
     """Samples in [near, far], up-sampling, and the SDF / colour networks on them.
 
     Args:
         origins, dirs: (B, 3); near, far: (B, 1).
+        in_sphere: [near, far] lies on the unit sphere's chord (culled rays; `up_sample`).
 
     Returns:
         dict with ``t`` (B, N) sorted, ``t_fine`` (B, n_importance), ``t_mid`` and
@@ -380,7 +382,8 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, f
     t = _coarse(near, span, cfg.n_samples, noise is not None,
                 noise=None if noise is None else noise.coarse, step=step)
     t, t_fine = up_sample(lambda p: model.sdf.sdf(p).float(), origins, dirs, t,
-                          as_sampler(sampler), cfg.n_importance, cfg.up_sample_steps)
+                          as_sampler(sampler), cfg.n_importance, cfg.up_sample_steps,
+                          in_sphere=in_sphere)
     N = t.shape[1]
     dists = torch.cat([t[:, 1:] - t[:, :-1], step], dim=-1)
     half = 0.5 * dists
@@ -469,8 +472,9 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     if noise is None and perturb:
         noise = draw_noise(cfg, origins.shape[0], generator, origins.device)
     near, far, active, entry, exit_ = _ray_bounds(origins, dirs, cfg, bounds)
+    culled = cfg.cull_outside_sphere or bool(bounds)  # [near, far] on the sphere's chord
     fg = _foreground(model, origins, dirs, near, far, cfg, sampler, cos_anneal_ratio,
-                     noise, create_graph)
+                     noise, create_graph, in_sphere=culled)
     keep = active[:, None].to(fg["alpha"].dtype)  # (B, 1)
     bg_from = far  # where the background model's samples start
     if bounds:  # the stretch skipped before the hull or grid (`entry_alpha`)

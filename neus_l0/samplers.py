@@ -71,26 +71,37 @@ class Sections:
         z: (B, N) sorted section ends.
         weights: (B, N-1) section weights (alpha times transmittance).
         prev_sdf: (B, N-1) NeuS's linear SDF estimate at the start of each section
-            (its ``prev_esti``).
-        next_sdf: (B, N-1) the estimate at the end (``next_esti``); <= prev_sdf.
+            (its ``prev_esti``), or None until `estimates` computes it.
+        next_sdf: (B, N-1) the estimate at the end (``next_esti``); <= prev_sdf; or None.
         inv_s: the fixed logistic sharpness of the round.
         dist: (B, N-1) the sections' lengths ``z[:, 1:] - z[:, :-1]``, or None (then a
             sampler that needs them computes them).
         u: (B, n) the deterministic quantiles of a draw of n samples, or None (a draw of
             another size, or without them, makes its own); `up_sample` makes them once.
+        twice: (2 prev_sdf, 2 next_sdf), which `upsample_section_weights` computes on the
+            way; `estimates` halves them only for a draw that reads them (hvs does not).
     """
 
     z: Tensor
     weights: Tensor
-    prev_sdf: Tensor
-    next_sdf: Tensor
+    prev_sdf: Tensor | None
+    next_sdf: Tensor | None
     inv_s: float
     dist: Tensor | None = None
     u: Tensor | None = None
+    twice: tuple[Tensor, Tensor] | None = None
 
     def lengths(self) -> Tensor:
         """(B, N-1) the sections' lengths (`dist`, or computed)."""
         return self.dist if self.dist is not None else self.z[:, 1:] - self.z[:, :-1]
+
+    def estimates(self) -> tuple[Tensor, Tensor]:
+        """(prev_sdf, next_sdf), (B, N-1) each, halved from `twice` on first use."""
+        if self.prev_sdf is None or self.next_sdf is None:
+            if self.twice is None:
+                raise ValueError("Sections without SDF estimates")
+            self.prev_sdf, self.next_sdf = 0.5 * self.twice[0], 0.5 * self.twice[1]
+        return self.prev_sdf, self.next_sdf
 
     def quantiles(self, n_samples: int) -> Tensor | None:
         """`u` when it holds n_samples quantiles per ray, else None."""
@@ -139,35 +150,40 @@ class _ExclusiveCumprod(torch.autograd.Function):
         return F.pad(after[:, 1:], (0, 1)) / keep  # i > j
 
 
-def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor, inv_s: float) -> Sections:
+def upsample_section_weights(z: Tensor, sdf: Tensor, radius: Tensor | None,
+                             inv_s: float) -> Sections:
     """NeuS's up-sampling weights of the sections [z_j, z_{j+1}] at a fixed sharpness.
 
     The slope of each section is the smaller (steeper descent) of its own and the previous
     section's, clipped to [-1e3, 0], and zero for sections entirely outside the unit sphere.
+    The estimates are formed doubled (``2 mid -+ 2 half``, exact in floating point), and
+    `inv_s / 2` scales them: the same numbers as NeuS's in fewer ops.
 
     Args:
         z: (B, N) sorted positions; sdf: (B, N) SDF there; radius: (B, N) distance to the
-            origin there.
+            origin there, or None when every z is inside the unit sphere (rays culled to
+            its chord: no section is outside).
         inv_s: the fixed logistic sharpness (NeuS: 64 * 2^round).
 
     Returns:
-        The `Sections`: weights (alpha times transmittance) and the SDF estimates, (B, N-1).
+        The `Sections`: weights (alpha times transmittance), (B, N-1), and the doubled
+        estimates (`Sections.estimates` halves them).
     """
-    inside = torch.minimum(radius[:, :-1], radius[:, 1:]) < 1.0  # (B, N-1): either end
     prev_sdf, next_sdf = sdf[:, :-1], sdf[:, 1:]
     dist = z[:, 1:] - z[:, :-1]
-    mid_sdf = 0.5 * (prev_sdf + next_sdf)
     cos_val = (next_sdf - prev_sdf) / (dist + 1e-5)
     prev_cos = F.pad(cos_val[:, :-1], (1, 0))  # the previous section's (0 before the first)
-    cos_val = torch.minimum(prev_cos, cos_val).clip(-1e3, 0.0) * inside
-    half = cos_val * dist * 0.5
-    prev_esti = mid_sdf - half
-    next_esti = mid_sdf + half
-    prev_cdf = torch.sigmoid(prev_esti * inv_s)
-    next_cdf = torch.sigmoid(next_esti * inv_s)
+    cos_val = torch.minimum(prev_cos, cos_val).clip(-1e3, 0.0)
+    if radius is not None:
+        cos_val = cos_val * (torch.minimum(radius[:, :-1], radius[:, 1:]) < 1.0)  # either end
+    mid2 = prev_sdf + next_sdf  # 2 mid_sdf
+    half2 = cos_val * dist  # 2 half
+    prev2, next2 = mid2 - half2, mid2 + half2
+    prev_cdf = torch.sigmoid(prev2 * (0.5 * inv_s))
+    next_cdf = torch.sigmoid(next2 * (0.5 * inv_s))
     alpha = (prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)
-    return Sections(z, alpha * transmittance(alpha), prev_esti, next_esti, float(inv_s),
-                    dist=dist)
+    return Sections(z, alpha * transmittance(alpha), None, None, float(inv_s), dist=dist,
+                    twice=(prev2, next2))
 
 
 def section_to_point_weights(z: Tensor, section_weights: Tensor, placement: str = "midpoint",
@@ -243,7 +259,7 @@ class HVSSampler:
     def draw(self, sections: Sections, n_samples: int) -> Tensor:
         """Deterministic `sample_pdf` on the sections; (B, n_samples)."""
         return sample_pdf(sections.z, sections.weights, n_samples, det=True,
-                          u=sections.quantiles(n_samples))
+                          u=sections.quantiles(n_samples), lengths=sections.dist)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,8 +271,9 @@ class NeuSExactSampler:
 
     def draw(self, sections: Sections, n_samples: int) -> Tensor:
         """Deterministic `sample_neus_sections` at the round's sharpness; (B, n_samples)."""
-        return sample_neus_sections(sections.z, sections.weights, sections.prev_sdf,
-                                    sections.next_sdf, sections.inv_s, n_samples, det=True)
+        prev_sdf, next_sdf = sections.estimates()
+        return sample_neus_sections(sections.z, sections.weights, prev_sdf, next_sdf,
+                                    sections.inv_s, n_samples, det=True)
 
 
 class L0Sampler:
@@ -398,7 +415,8 @@ def build_sampler(cfg: SamplerConfig | str) -> Sampler:
 
 
 def up_sample(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor, z: Tensor,
-              sampler: Sampler, n_importance: int, steps: int) -> tuple[Tensor, Tensor]:
+              sampler: Sampler, n_importance: int, steps: int,
+              in_sphere: bool = False) -> tuple[Tensor, Tensor]:
     """NeuS's coarse-to-fine rounds (no gradient), drawing with `sampler`.
 
     Round i computes the `Sections` at ``inv_s = sampler.base_inv_s * 2^i`` and draws
@@ -412,6 +430,8 @@ def up_sample(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor,
         sampler: the draw (see `build_sampler`).
         n_importance: fine samples in total (a multiple of `steps`).
         steps: rounds.
+        in_sphere: every z lies on the rays' chords of the unit sphere (culled rays), so
+            no section is outside it and the distances to the origin are not needed.
 
     Returns:
         z_all: (B, n_samples + n_importance) sorted positions; z_new: (B, n_importance) the
@@ -423,11 +443,12 @@ def up_sample(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor,
     B = z.shape[0]
     o, d = origins[:, None, :], dirs[:, None, :]  # (B, 1, 3)
 
-    def sdf_at(t: Tensor) -> tuple[Tensor, Tensor]:
-        """(B, n) positions -> the SDF and the distance to the origin there, (B, n) each."""
+    def sdf_at(t: Tensor) -> tuple[Tensor, Tensor | None]:
+        """(B, n) positions -> the SDF and (unless `in_sphere`) the distance to the origin
+        there, (B, n) each."""
         pts = torch.addcmul(o, d, t[..., None])  # (B, n, 3)
         sdf = sdf_fn(pts.view(-1, 3)).to(t.dtype).view(B, t.shape[1])
-        return sdf, pts.norm(dim=-1)
+        return sdf, None if in_sphere else pts.norm(dim=-1)
 
     new_all = []
     with torch.no_grad():
@@ -442,5 +463,6 @@ def up_sample(sdf_fn: Callable[[Tensor], Tensor], origins: Tensor, dirs: Tensor,
             if i + 1 < steps:  # the values follow the same order
                 new_sdf, new_radius = sdf_at(new_z)
                 sdf = torch.gather(torch.cat([sdf, new_sdf], dim=-1), -1, order)
-                radius = torch.gather(torch.cat([radius, new_radius], dim=-1), -1, order)
+                if radius is not None and new_radius is not None:
+                    radius = torch.gather(torch.cat([radius, new_radius], dim=-1), -1, order)
     return z, torch.cat(new_all, dim=-1)

@@ -175,7 +175,7 @@ def quantiles(shape: tuple[int, ...], n_samples: int, det: bool,
 # ----------------------------------------------------------------------------- the CDF
 
 
-def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
     """Normalised cumulative masses, falling back to uniform where a ray has none.
 
     Args:
@@ -184,33 +184,37 @@ def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor]:
             zero-length pieces gets equal masses) for rays whose ``mass`` sums to 0.
 
     Returns:
-        lo: (R, M) cdf at the start of each piece (exactly the previous piece's ``hi``).
-        hi: (R, M) cdf at the end of each piece; ``hi[:, -1] == 1`` exactly.
+        cdf: (R, M) the cdf at the end of each piece, contiguous; ``cdf[:, -1] == 1``
+        exactly (piece i spans [cdf_{i-1}, cdf_i], cdf_{-1} = 0).
         degenerate: (R, 1) bool, True where ``mass`` was replaced.
     """
     degenerate = mass.sum(dim=-1, keepdim=True) <= 0  # (R, 1)
     mass = torch.where(degenerate, d + _flat(d.dtype), mass)
     csum = torch.cumsum(mass, dim=-1)
-    hi = csum / csum[:, -1:]
-    lo = torch.nn.functional.pad(hi[:, :-1], (1, 0))
-    return lo, hi, degenerate
+    return csum / csum[:, -1:], degenerate
 
 
-def _locate(hi: Tensor, u: Tensor) -> Tensor:
-    """Piece index i with lo_i <= u < hi_i; hi (R, M), u (R, n) -> (R, n) int64."""
-    return torch.searchsorted(hi, u, right=True).clamp_(max=hi.shape[-1] - 1)
+def _locate(cdf: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The piece of each quantile and the cdf at its ends.
+
+    Args:
+        cdf: (R, M) from `_cdf`, the cdf at the pieces' ends. u: (R, n) quantiles in [0, 1).
+
+    Returns:
+        idx (R, n) int64, the piece i with cdf_{i-1} <= u < cdf_i; lo, hi (R, n) the cdf at
+        its ends (hi > lo: a piece that holds a quantile has mass).
+    """
+    idx = torch.searchsorted(cdf, u, right=True).clamp_(max=cdf.shape[-1] - 1)
+    starts = F.pad(cdf, (1, 0))  # (R, M+1): piece i starts at starts[:, i]
+    return idx, torch.gather(starts, -1, idx), torch.gather(cdf, -1, idx)
 
 
-def _fraction(u: Tensor, lo: Tensor, inv_width: Tensor, idx: Tensor) -> Tensor:
-    """q = (u - lo_i) / width_i in [0, 1] for each sample; all (R, n) but lo, inv_width (R, M)."""
-    q = (u - torch.gather(lo, -1, idx)).mul_(torch.gather(inv_width, -1, idx))
-    return q.clamp_(0.0, 1.0)
+def _fraction(u: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """q = (u - lo) / (hi - lo) in [0, 1], the quantile's position in its piece; all (R, n).
 
-
-def _inverse_width(lo: Tensor, hi: Tensor) -> Tensor:
-    """1 / (hi - lo), finite (float max) where a piece has (almost) no mass."""
-    fmax = torch.finfo(lo.dtype).max
-    return torch.reciprocal(hi - lo).clamp_(max=fmax)
+    hi > lo (`_locate`), so the division is finite; the clamp repairs rounding.
+    """
+    return ((u - lo) / (hi - lo)).clamp_(0.0, 1.0)
 
 
 def _finish(samples: Tensor, t: Tensor) -> Tensor:
@@ -232,7 +236,8 @@ def _finish(samples: Tensor, t: Tensor) -> Tensor:
 
 @torch.no_grad()
 def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
-               generator: torch.Generator | None = None, u: Tensor | None = None) -> Tensor:
+               generator: torch.Generator | None = None, u: Tensor | None = None,
+               lengths: Tensor | None = None) -> Tensor:
     """NeRF's hierarchical volume sampling: inverse transform of a piecewise-constant PDF.
 
     Args:
@@ -242,6 +247,8 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
         det: midpoint quantiles ``(k + 0.5) / n`` instead of stratified random ones.
         generator: random source for ``det=False``.
         u: (R, n) quantiles drawn beforehand (see `sample_l0`).
+        lengths: (..., N) the bins' lengths ``bins[1:] - bins[:-1]`` when the caller has
+            them (NeuS's up-sampling does), else None.
 
     Returns:
         (..., n) sorted samples inside [bins_0, bins_N], without gradient.
@@ -255,12 +262,13 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
     bins = _rows(bins)  # (R, N+1); no gradient here, so no detach
     w = _prepare_weights(_rows(weights), bins.dtype, False, 0.0)
     lo_edge = bins[:, :-1]
-    d = (bins[:, 1:] - lo_edge).clamp_min_(0)  # (R, N)
-    lo, hi, _ = _cdf(w, d)
+    # sorted bins: lengths >= 0 (the clamp guards hand-made bins)
+    d = (bins[:, 1:] - lo_edge).clamp_min_(0) if lengths is None else _rows(lengths)  # (R, N)
+    cdf, _ = _cdf(w, d)
     if u is None:
         u = quantiles((bins.shape[0],), n_samples, det, generator, bins.dtype, bins.device)
-    idx = _locate(hi, u)  # (R, n)
-    q = _fraction(u, lo, _inverse_width(lo, hi), idx)
+    idx, lo, hi = _locate(cdf, u)  # (R, n)
+    q = _fraction(u, lo, hi)
     out = torch.addcmul(torch.gather(lo_edge, -1, idx), q, torch.gather(d, -1, idx))
     return _unrows(_finish(out, bins), batch)
 
@@ -387,14 +395,12 @@ def _draw_exp(E: Tensor, L: Tensor, mass: Tensor, d: Tensor, t_lo: Tensor, u: Te
     Returns:
         (R, n) positions, sorted up to rounding.
     """
-    lo, hi, degenerate = _cdf(mass, d)
+    cdf, degenerate = _cdf(mass, d)
     if zeros:  # else a ray without mass has only zero-length pieces: any E, L will do
         E, L = _make_flat(E, L, degenerate)  # uniform fallback: constant pieces
-    idx = _locate(hi, u)
-    # alpha = E / width folds q = (u - lo) / width into one product per sample.
-    fmax = torch.finfo(E.dtype).max
-    alpha = (E * _inverse_width(lo, hi)).clamp_(-fmax, fmax)  # E, 1/width finite: no NaN
-    y = (u - torch.gather(lo, -1, idx)).mul_(torch.gather(alpha, -1, idx))  # q E
+    idx, lo, hi = _locate(cdf, u)
+    # q E with q = (u - lo) / (hi - lo) unclamped in [0, 1] and E finite: finite
+    y = ((u - lo) / (hi - lo)).mul_(torch.gather(E, -1, idx))
     x = torch.log1p(y.clamp_(min=-1.0 + torch.finfo(E.dtype).eps))
     return torch.addcmul(torch.gather(t_lo, -1, idx), x, torch.gather(d / L, -1, idx))
 
@@ -407,11 +413,11 @@ def _fused_inverse(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
     """
     E, L = _growth(a, b, zeros)
     mass = torch.where(torch.isfinite(L), b * L / E, 0.0).mul_(d)  # L = -inf: no mass
-    lo, hi, degenerate = _cdf(mass, d)
+    cdf, degenerate = _cdf(mass, d)
     if zeros:
         E, L = _make_flat(E, L, degenerate)
-    idx = _locate(hi, u)
-    q = _fraction(u, lo, _inverse_width(lo, hi), idx)
+    idx, lo, hi = _locate(cdf, u)
+    q = _fraction(u, lo, hi)
     scale = d / torch.expm1(-L)  # (R, M); L = -inf pieces (no mass) give 0
     y = torch.expm1(q.mul_(torch.gather(L, -1, idx)).neg_())
     return torch.addcmul(torch.gather(t_lo, -1, idx), y, torch.gather(scale, -1, idx))
@@ -423,9 +429,9 @@ def _fused_linear(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
 
     Args and returns as :func:`_fused_exp`.
     """
-    lo, hi, degenerate = _cdf((0.5 * (a + b)).mul_(d), d)
-    idx = _locate(hi, u)
-    q = _fraction(u, lo, _inverse_width(lo, hi), idx)
+    cdf, degenerate = _cdf((0.5 * (a + b)).mul_(d), d)
+    idx, lo, hi = _locate(cdf, u)
+    q = _fraction(u, lo, hi)
     one = torch.ones((), dtype=a.dtype, device=a.device)
     ai = torch.gather(torch.where(degenerate, one, a), -1, idx)
     bi = torch.gather(torch.where(degenerate, one, b), -1, idx)
@@ -600,10 +606,10 @@ def sample_neus_sections(z: Tensor, weights: Tensor, prev_sdf: Tensor, next_sdf:
     x = (prev_sdf.detach().to(dtype) * k).expand(*batch, N - 1).reshape(-1, N - 1)
     y = (next_sdf.detach().to(dtype) * k).expand(*batch, N - 1).reshape(-1, N - 1)
     d = (z[:, 1:] - z[:, :-1]).clamp_min(0)  # (R, N-1)
-    lo, hi, degenerate = _cdf(w, d)
+    cdf, degenerate = _cdf(w, d)
     u = quantiles((z.shape[0],), n_samples, det, generator, dtype, z.device)  # (R, n)
-    idx = _locate(hi, u)
-    q = _fraction(u, lo, _inverse_width(lo, hi), idx)
+    idx, lo, hi = _locate(cdf, u)
+    q = _fraction(u, lo, hi)
     s = neus_section_inverse_cdf(torch.gather(x, -1, idx), torch.gather(y, -1, idx), q)
     s = torch.where(degenerate, q, s)  # a ray without mass: uniform inside each section too
     out = torch.addcmul(torch.gather(z[:, :-1], -1, idx), s, torch.gather(d, -1, idx))

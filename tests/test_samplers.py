@@ -50,20 +50,63 @@ def test_registry_builds_every_name():
 
 def test_sections_of_a_plane_are_its_linear_sdf():
     sec = _sections()
-    assert sec.weights.shape == sec.prev_sdf.shape == (6, 16) and sec.inv_s == 64.0
-    assert (sec.prev_sdf >= sec.next_sdf).all()
+    prev_sdf, next_sdf = sec.estimates()
+    assert sec.weights.shape == prev_sdf.shape == (6, 16) and sec.inv_s == 64.0
+    assert (prev_sdf >= next_sdf).all()
     # a linear SDF: NeuS's estimates are the SDF at the section ends (up to its 1e-5 guard)
     z = sec.z
-    sdf = 0.5 * (sec.prev_sdf + sec.next_sdf)  # the midpoint value is exact
-    slope = (sec.prev_sdf - sec.next_sdf)[:, 1:] / (z[:, 2:] - z[:, 1:-1])
+    sdf = 0.5 * (prev_sdf + next_sdf)  # the midpoint value is exact
+    slope = (prev_sdf - next_sdf)[:, 1:] / (z[:, 2:] - z[:, 1:-1])
     torch.testing.assert_close(slope, slope[:, :1].expand_as(slope), rtol=1e-3, atol=1e-3)
     assert torch.isfinite(sdf).all()
     assert (sec.weights >= 0).all() and sec.weights.sum(-1).max() <= 1.0 + 1e-4
 
 
+def _neus_up_sample_weights(z, sdf, radius, inv_s):
+    """NeuS's `up_sample` weights and estimates, written as NeuS writes them (float64)."""
+    inside = ((radius[:, :-1] < 1.0) | (radius[:, 1:] < 1.0)).to(z.dtype)
+    prev_sdf, next_sdf = sdf[:, :-1], sdf[:, 1:]
+    prev_z, next_z = z[:, :-1], z[:, 1:]
+    mid_sdf = (prev_sdf + next_sdf) * 0.5
+    cos_val = (next_sdf - prev_sdf) / (next_z - prev_z + 1e-5)
+    prev_cos = torch.cat([torch.zeros_like(cos_val[:, :1]), cos_val[:, :-1]], dim=-1)
+    cos_val = torch.stack([prev_cos, cos_val], dim=-1).min(dim=-1).values
+    cos_val = cos_val.clip(-1e3, 0.0) * inside
+    dist = next_z - prev_z
+    prev_esti = mid_sdf - cos_val * dist * 0.5
+    next_esti = mid_sdf + cos_val * dist * 0.5
+    prev_cdf = torch.sigmoid(prev_esti * inv_s)
+    next_cdf = torch.sigmoid(next_esti * inv_s)
+    alpha = (prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha + 1e-7],
+                                    dim=-1), dim=-1)[:, :-1]
+    return alpha * trans, prev_esti, next_esti
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_section_weights_are_neus_formula(dtype):
+    """The fused section weights equal NeuS's own code; radius=None equals all inside."""
+    g = torch.Generator().manual_seed(3)
+    z = torch.sort(torch.rand(64, 40, generator=g, dtype=torch.float64) * 2.0, dim=-1).values
+    sdf = torch.randn(64, 40, generator=g, dtype=torch.float64) * 0.2
+    radius = torch.rand(64, 40, generator=g, dtype=torch.float64) * 1.6
+    z, sdf, radius = z.to(dtype), sdf.to(dtype), radius.to(dtype)
+    tol = {"rtol": 1e-12, "atol": 1e-15} if dtype == torch.float64 else {}
+    for inv_s in (64.0, 512.0):
+        want_w, want_p, want_n = _neus_up_sample_weights(z, sdf, radius, inv_s)
+        sec = upsample_section_weights(z, sdf, radius, inv_s)
+        torch.testing.assert_close(sec.weights, want_w, **tol)
+        torch.testing.assert_close(sec.estimates()[0], want_p, **tol)
+        torch.testing.assert_close(sec.estimates()[1], want_n, **tol)
+        torch.testing.assert_close(sec.lengths(), z[:, 1:] - z[:, :-1])
+        inside = upsample_section_weights(z, sdf, None, inv_s)
+        torch.testing.assert_close(inside.weights, _neus_up_sample_weights(
+            z, sdf, torch.zeros_like(radius), inv_s)[0], **tol)
+
+
 def test_relative_pad_does_not_depend_on_the_weights_scale():
     sec = _sections()
-    small = Sections(sec.z, sec.weights * 1e-3, sec.prev_sdf, sec.next_sdf, sec.inv_s)
+    small = Sections(sec.z, sec.weights * 1e-3, *sec.estimates(), sec.inv_s)
     rel = L0Sampler(pad=0.01, pad_mode="relative", masses="interpolant")
     torch.testing.assert_close(rel.draw(small, 16), rel.draw(sec, 16))
     ab = L0Sampler(pad=0.01, pad_mode="absolute", masses="interpolant")
