@@ -40,6 +40,22 @@ def pixel_rays(intrinsics: torch.Tensor, c2w: torch.Tensor,
     return T[:, :3, 3], dirs
 
 
+def ray_matrices(intrinsics: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
+    """Per-view matrices A = R K^-1 that map a pixel [x, y, 1] to its ray's direction.
+
+    Computed in float64 (then cast back), once per scene: `rays_at` then needs one small
+    product per ray (`pixel_rays` solves K per ray, which the same ray needs ~15 ops for).
+
+    Args:
+        intrinsics: (V, 3, 3) upper-triangular K; c2w: (V, 4, 4).
+
+    Returns:
+        (V, 3, 3) in intrinsics' dtype; ``A @ [x, y, 1]`` is the (unnormalised) direction.
+    """
+    k_inv = torch.linalg.inv(intrinsics.double())
+    return (c2w[:, :3, :3].double() @ k_inv).to(intrinsics.dtype)
+
+
 def pixel_grid(height: int, width: int, device: torch.device | str = "cpu") -> torch.Tensor:
     """(H, W, 2) float32 pixel-centre coordinates (x, y) of an image."""
     ys, xs = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float32),
@@ -111,10 +127,11 @@ def rays_at(scene: Scene, flat: torch.Tensor) -> dict:
     pix = flat % (H * W)
     y, x = pix // W, pix % W
     xy = torch.stack([x, y], dim=-1)
-    o, d = pixel_rays(scene.intrinsics[view], scene.c2w[view], xy.float())
+    xy1 = torch.nn.functional.pad(xy.to(scene.c2w.dtype), (0, 1), value=1.0)  # (B, 3)
+    d = torch.bmm(scene.ray_matrices[view], xy1[..., None])[..., 0]  # (B, 3)
     return {
-        "origins": o,
-        "dirs": d,
+        "origins": scene.centres[view],
+        "dirs": d / d.norm(dim=-1, keepdim=True),
         "rgb": scene.images[view, y, x],
         "mask": scene.masks[view, y, x].unsqueeze(-1),
         "view": view,

@@ -19,6 +19,7 @@ block-averaged the same way and kept as soft coverage in [0, 1].
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
 from pathlib import Path
 
@@ -74,6 +75,18 @@ class Scene:
     @property
     def device(self) -> torch.device:
         return self.images.device
+
+    @functools.cached_property
+    def ray_matrices(self) -> torch.Tensor:
+        """(n_views, 3, 3) R K^-1 of each view (`neus_l0.data.rays.ray_matrices`), computed
+        on first use (a scene's cameras do not change after loading)."""
+        from neus_l0.data.rays import ray_matrices  # rays imports this module
+        return ray_matrices(self.intrinsics, self.c2w)
+
+    @functools.cached_property
+    def centres(self) -> torch.Tensor:
+        """(n_views, 3) camera centres in the normalised frame, contiguous."""
+        return self.c2w[:, :3, 3].contiguous()
 
     def to(self, device: str | torch.device) -> Scene:
         """Return a copy whose tensors live on `device`."""
