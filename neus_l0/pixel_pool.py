@@ -22,7 +22,11 @@ from torch import Tensor
 from neus_l0.config import RenderConfig
 from neus_l0.data.rays import image_rays
 from neus_l0.data.scene import Scene
-from neus_l0.rendering import RayBounds, ray_bounds
+from neus_l0.rendering import RayBounds, ray_spans
+
+#: Largest pool whose rays' spans are kept (16 bytes a pixel: 1 GiB); a bigger pool's
+#: steps compute their bounds themselves.
+MAX_SPAN_PIXELS = 1 << 26
 
 
 @dataclasses.dataclass
@@ -32,10 +36,16 @@ class PixelPool:
     Attributes:
         pixels: (P,) int64 flat indices ``view * H * W + y * W + x``, on the scene's device.
         fraction: P over all pixels of the scene.
+        spans: (P, 4) float32 each pixel's ray span (near, far, sphere entry, sphere exit;
+            `neus_l0.rendering.ray_spans`) under the static bounds the pool was made with,
+            or None (no static bounds, or more than `MAX_SPAN_PIXELS` pixels). The bounds
+            are static and a pixel's ray is fixed, so a step looks them up instead of
+            computing them.
     """
 
     pixels: Tensor
     fraction: float
+    spans: Tensor | None = None
 
 
 def hull_silhouette(occupancy: Tensor, intrinsics: Tensor, c2w: Tensor, height: int,
@@ -111,7 +121,7 @@ def reachable_pixels(scene: Scene, cfg: RenderConfig, bounds: Sequence[RayBounds
         return None
     hw = scene.height * scene.width
     grids = [b.occupancy for b in bounds if isinstance(getattr(b, "occupancy", None), Tensor)]
-    found = []
+    found, spans = [], []
     for v in range(scene.n_views):
         o, d = (x.reshape(-1, 3) for x in image_rays(scene, v))
         candidates = torch.arange(hw, device=o.device)
@@ -121,9 +131,13 @@ def reachable_pixels(scene: Scene, cfg: RenderConfig, bounds: Sequence[RayBounds
             candidates = candidates[sil[candidates]]
         for s in range(0, candidates.numel(), chunk):
             rows = candidates[s:s + chunk]
-            active = ray_bounds(o[rows], d[rows], cfg, bounds)[2]
+            span, active = ray_spans(o[rows], d[rows], cfg, bounds)
             found.append(rows[active] + v * hw)
+            spans.append(span[active])
     pixels = torch.cat(found)
     if pixels.numel() == 0:
         return None
-    return PixelPool(pixels=pixels, fraction=pixels.numel() / (scene.n_views * hw))
+    # spans only under static bounds: the sphere's chord alone is cheaper to recompute
+    # than to look up, and a span tells `render_rays` that the rays were narrowed
+    kept = torch.cat(spans) if bounds and pixels.numel() <= MAX_SPAN_PIXELS else None
+    return PixelPool(pixels=pixels, fraction=pixels.numel() / (scene.n_views * hw), spans=kept)

@@ -1,10 +1,10 @@
-"""The opacity of the stretch a narrowed ray skips (`rendering.entry_alpha`)."""
+"""The opacity of the stretch a narrowed ray skips (`rendering.section_alpha`'s `skipped`)."""
 
 import torch
 from test_rendering import AnalyticSphere, sphere_model  # noqa: F401
 
 from neus_l0.config import RenderConfig
-from neus_l0.rendering import entry_alpha, render_rays
+from neus_l0.rendering import render_rays, section_alpha
 
 
 class StartsAt:
@@ -18,21 +18,35 @@ class StartsAt:
         return lo, far, torch.ones(origins.shape[0], dtype=torch.bool)
 
 
+def _neus_alpha(start, end, s):
+    """NeuS's guarded section opacity, float64."""
+    p, n = torch.sigmoid(start * s), torch.sigmoid(end * s)
+    return ((p - n + 1e-5) / (p + 1e-5)).clip(0.0, 1.0)
+
+
 def test_closed_form_and_limits():
     s = torch.tensor([50.0])
-    prev = torch.tensor([0.1, -0.2, -0.2, 0.3])
-    slope = torch.tensor([-1.0, -1.0, 0.0, -1.0])
-    skipped = torch.tensor([0.5, 0.5, 0.5, 0.0])
-    a = entry_alpha(prev, slope, skipped, s)
-    p64, k64, l64, s64 = prev.double(), slope.double(), skipped.double(), s.double()
-    start = torch.sigmoid((p64 - k64 * l64) * s64)  # NeuS's section opacity, float64
-    end = torch.sigmoid(p64 * s64)
-    ref = ((start - end) / start) * (l64 > 0)
-    torch.testing.assert_close(a.double(), ref, rtol=1e-5, atol=1e-6)
-    assert a[0] < 0.01  # enters outside the object: transparent
-    assert a[1] > 0.99  # enters inside, head-on: opaque
-    assert a[2] < 0.01  # enters inside but parallel to the surface: nothing crossed
-    assert a[3] == 0  # nothing skipped
+    sdf = torch.tensor([[0.1, 0.05], [-0.2, -0.3], [-0.2, -0.2], [0.3, 0.2]])
+    slope = torch.tensor([[-1.0, -1.0], [-1.0, -1.0], [0.0, 0.0], [-1.0, -0.5]])
+    half = torch.full((4, 2), 0.02)
+    skipped = torch.tensor([[0.5], [0.5], [0.5], [0.0]])
+    a = section_alpha(sdf, slope, half, s, skipped)
+    plain = section_alpha(sdf, slope, half, s)
+    d, k, h, sk, s64 = sdf.double(), slope.double(), half.double(), skipped.double(), s.double()
+    # the first section starts `skipped` earlier on the same linear model; the rest as NeuS
+    reach = h + torch.cat([sk, torch.zeros_like(sk)], dim=-1)
+    torch.testing.assert_close(a.double(), _neus_alpha(d - k * reach, d + k * h, s64),
+                               rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(a[:, 1:], plain[:, 1:], rtol=0, atol=0)
+    # the same as the stretch's own opacity (exact, no guards) composed with the section's
+    start, mid = torch.sigmoid((d - k * (h + sk)) * s64), torch.sigmoid((d - k * h) * s64)
+    stretch = ((start - mid) / start)[:, 0]
+    composed = 1.0 - (1.0 - stretch) * (1.0 - plain[:, 0].double())
+    torch.testing.assert_close(a[:, 0].double(), composed, rtol=0, atol=1e-4)
+    assert 0 <= a[0, 0] - plain[0, 0] < 0.01  # enters outside the object: about nothing added
+    assert a[1, 0] > 0.99  # enters inside, head-on: opaque
+    assert a[2, 0] == plain[2, 0]  # enters inside but parallel to the surface: nothing crossed
+    assert torch.equal(a[3], plain[3])  # nothing skipped
 
 
 def test_a_ray_entering_inside_the_object_is_opaque():

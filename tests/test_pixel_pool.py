@@ -60,3 +60,35 @@ def test_no_pool_with_a_background_model_or_without_culling(tmp_path):
     assert reachable_pixels(scene, RenderConfig()) is None
     assert reachable_pixels(scene, RenderConfig(cull_outside_sphere=True),
                             background=True) is None
+
+
+def test_the_pool_keeps_each_pixels_span_and_a_step_may_use_it(tmp_path):
+    """`PixelPool.spans` are `ray_spans` of the pixels' rays under the hull, and rendering
+    with them is rendering with the hull; without static bounds nothing is kept."""
+    from test_rendering import sphere_model
+
+    from neus_l0.data.rays import rays_at
+    from neus_l0.rendering import ray_spans, render_rays
+
+    scene = sphere_scene(tmp_path / "s", n_views=4, H=30, W=40, radius=0.4)
+    hull = hull_from_scene(scene, 64, 2.0)
+    cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2,
+                       cull_outside_sphere=True)
+    assert reachable_pixels(scene, cfg).spans is None  # the sphere alone: recomputed
+    pool = reachable_pixels(scene, cfg, (hull,))
+    assert pool.spans.shape == (pool.pixels.numel(), 4)
+    rays = rays_at(scene, pool.pixels)
+    span, active = ray_spans(rays["origins"], rays["dirs"], cfg, (hull,))
+    assert active.all()  # the pool's pixels all reach the hull
+    # the pool's rays came from `image_rays`, a step's from `rays_at`: the same to rounding
+    torch.testing.assert_close(pool.spans, span, rtol=0, atol=1e-5)
+    near, far, entry, exit_ = pool.spans.unbind(1)
+    assert (entry <= near + 1e-6).all() and (near < far).all() and (far <= exit_ + 1e-6).all()
+    model = sphere_model()
+    pick = torch.arange(0, pool.pixels.numel(), 7)
+    o, d = rays["origins"][pick], rays["dirs"][pick]
+    with torch.no_grad():
+        with_hull = render_rays(model, o, d, cfg, "hvs", bounds=(hull,))
+        looked_up = render_rays(model, o, d, cfg, "hvs", span=span[pick])
+    for key in ("color", "weight_sum", "depth", "t"):
+        torch.testing.assert_close(looked_up[key], with_hull[key], rtol=0, atol=0)

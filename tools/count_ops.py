@@ -3,7 +3,7 @@
 Usage:
     python tools/count_ops.py [--conf demo] [--views 4] [--width 40] [--height 30]
                               [--warm 3] [--iteration ITER] [--top 25] [--phases]
-                              [override ...]
+                              [--run-setup] [override ...]
 
 Builds the built-in ``demo`` scene (small, `neus_l0.data.synthetic.make_scene`), the config's
 model and optimiser, runs ``--warm`` untimed steps (lazy state: Adam's moments, the first
@@ -40,7 +40,17 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from neus_l0.config import load_config
 from neus_l0.data.scene import load_scene
 from neus_l0.data.synthetic import make_scene
-from neus_l0.train import make_model, make_occupancy, make_optimizer, make_scaler, train_step
+from neus_l0.pixel_pool import reachable_pixels
+from neus_l0.samplers import build_sampler
+from neus_l0.train import (
+    StepSetup,
+    make_model,
+    make_occupancy,
+    make_optimizer,
+    make_scaler,
+    run_hull,
+    train_step,
+)
 
 #: "module file stem:function name" -> phase label, for `--phases`; nested matches join
 #: with "/" (outermost first).
@@ -119,10 +129,15 @@ class OpCounter(TorchDispatchMode):
 
 def count_step_ops(conf: str, overrides: list[str], views: int = 4, width: int = 40,
                    height: int = 30, warm: int = 3,
-                   iteration: int | None = None, phases: bool = False
+                   iteration: int | None = None, phases: bool = False,
+                   run_setup: bool = False
                    ) -> collections.Counter[str] | tuple[collections.Counter[str],
                                                           collections.Counter[str]]:
     """Aten ops of one training step of config `conf` (with `overrides`) on the demo scene.
+
+    With `run_setup` the step gets what `neus_l0.train` gives a run's steps: the built
+    sampler, the visual hull (the demo scene has masks) and the pixel pool; without, the
+    bare `train_step` (no hull, rays from every pixel).
 
     Returns:
         counts of each op name over the step (forward, backward, optimiser step); with
@@ -134,20 +149,26 @@ def count_step_ops(conf: str, overrides: list[str], views: int = 4, width: int =
                           height=height, seed=0, gt_voxel=4.0, point_spacing=2.0,
                           progress=False)
         scene = load_scene(root, device="cpu")
-    cfg = load_config(conf, overrides)
-    model = make_model(cfg, "cpu")
+        cfg = load_config(conf, overrides)
+        model = make_model(cfg, "cpu")
+        setup = None
+        if run_setup:
+            setup = StepSetup(sampler=build_sampler(cfg.sampler))
+            setup.bounds = run_hull(scene, cfg, Path(tmp))
+            setup.pool = reachable_pixels(scene, cfg.render, setup.bounds,
+                                          background=model.background is not None)
     opt = make_optimizer(model, cfg)
     grid = make_occupancy(cfg, "cpu")
     scaler = make_scaler(cfg, "cpu")
     gen = torch.Generator().manual_seed(0)
     for it in range(warm):
-        train_step(model, opt, scene, cfg, it, gen, occupancy=grid, scaler=scaler)
+        train_step(model, opt, scene, cfg, it, gen, occupancy=grid, scaler=scaler, setup=setup)
     it = warm if iteration is None else iteration
     counter = OpCounter(phases)
     anomaly = (torch.autograd.set_detect_anomaly(True, check_nan=False) if phases
                else contextlib.nullcontext())
     with anomaly, counter:
-        train_step(model, opt, scene, cfg, it, gen, occupancy=grid, scaler=scaler)
+        train_step(model, opt, scene, cfg, it, gen, occupancy=grid, scaler=scaler, setup=setup)
     return (counter.counts, counter.phases) if phases else counter.counts
 
 
@@ -163,15 +184,18 @@ def main() -> None:
     ap.add_argument("--top", type=int, default=25, help="how many op names to list")
     ap.add_argument("--phases", action="store_true",
                     help="also count the ops of each phase of the step")
+    ap.add_argument("--run-setup", action="store_true",
+                    help="count the step a run takes: with its visual hull and pixel pool")
     ap.add_argument("overrides", nargs="*", help="dotted key=value config overrides")
     args = ap.parse_args()
     torch.set_num_threads(1)
     result = count_step_ops(args.conf, args.overrides, args.views, args.width, args.height,
-                            args.warm, args.iteration, args.phases)
+                            args.warm, args.iteration, args.phases, args.run_setup)
     counts, phases = result if args.phases else (result, None)
     total = sum(counts.values())
-    print(f"# conf {args.conf} {' '.join(args.overrides)}: {total} aten ops in one step "
-          f"(torch {torch.__version__})")
+    setup = " (run setup: hull, pixel pool)" if args.run_setup else ""
+    print(f"# conf {args.conf} {' '.join(args.overrides)}{setup}: {total} aten ops in one "
+          f"step (torch {torch.__version__})")
     print("| op | count | share |")
     print("|---|---:|---:|")
     for name, n in counts.most_common(args.top):

@@ -107,10 +107,15 @@ def random_pixel_rays(scene: Scene, n_rays: int, pixels: torch.Tensor,
     Returns:
         the dict of `random_rays`.
     """
-    dev = scene.device
-    gdev = generator.device if generator is not None else dev
-    pick = torch.randint(0, pixels.shape[0], (n_rays,), generator=generator, device=gdev)
-    return rays_at(scene, pixels[pick.to(dev)])
+    return rays_at(scene, pixels[random_picks(pixels.shape[0], n_rays, generator, scene.device)])
+
+
+def random_picks(n: int, n_rays: int, generator: torch.Generator | None,
+                 device: torch.device) -> torch.Tensor:
+    """(n_rays,) int64 indices drawn uniformly from [0, n) on the generator's device, moved
+    to `device`."""
+    gdev = generator.device if generator is not None else device
+    return torch.randint(0, n, (n_rays,), generator=generator, device=gdev).to(device)
 
 
 def rays_at(scene: Scene, flat: torch.Tensor) -> dict:
