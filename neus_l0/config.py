@@ -524,6 +524,11 @@ def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
     return obj
 
 
+#: The fields of a sampler block dumped before `masses` existed (session 3's `SamplerConfig`).
+_DUMPED_SAMPLER_KEYS = frozenset({"name", "kind", "pad", "pad_mode", "blur", "placement",
+                                  "as_density", "base_inv_s"})
+
+
 def _legacy_sampler(data: dict) -> dict:
     """Move the old `render.*` sampler keys (`LEGACY_SAMPLER_KEYS`) into the sampler block.
 
@@ -532,10 +537,13 @@ def _legacy_sampler(data: dict) -> dict:
     spellings are given, the new ``sampler.*`` key wins. ``render.l0_pad`` also sets
     ``blur: true`` and ``pad_mode: absolute`` (unless given), which is what the old code ran,
     so old configs and checkpoints keep their meaning; so does a whole sampler block dumped
-    before ``masses`` existed (it gets ``masses: interpolant``).
+    before ``masses`` existed (every field of that time, `_DUMPED_SAMPLER_KEYS`, and no
+    ``masses``: it gets ``masses: interpolant``). A hand-written block (``{name: hvs,
+    base_inv_s: 128}``) is not a dump and keeps the default.
     """
     stored = data.get("sampler")
-    if isinstance(stored, dict) and "base_inv_s" in stored and "masses" not in stored:
+    if (isinstance(stored, dict) and _DUMPED_SAMPLER_KEYS <= stored.keys()
+            and "masses" not in stored):
         # a whole block dumped before `masses` existed: those runs drew from the interpolant
         data = {**data, "sampler": {**stored, "masses": "interpolant"}}
     render = data.get("render")

@@ -223,6 +223,10 @@ def test_a_block_dumped_before_masses_keeps_the_interpolant():
     del old["sampler"]["masses"]
     assert config_from_dict(old).sampler.masses == "interpolant"
     assert load_config("demo").sampler.masses == "sections"
+    # a hand-written block that sets base_inv_s is not a dump: the default draw
+    hand = {**old, "sampler": {"name": "l0", "base_inv_s": 128.0}}
+    assert config_from_dict(hand).sampler.masses == "sections"
+    assert load_config("fast", ["sampler=l0"]).sampler.masses == "sections"
 
 
 @pytest.mark.parametrize("override, words", [
