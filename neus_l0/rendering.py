@@ -428,7 +428,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
                 sampler: Sampler | SamplerConfig | str = "l0", *,
                 cos_anneal_ratio: float | Tensor = 1.0,
                 perturb: bool = False, generator: torch.Generator | None = None,
-                create_graph: bool = False, occupancy: RayBounds | None = None,
+                create_graph: bool = False,
                 bounds: Sequence[RayBounds] = (),
                 noise: RenderNoise | None = None,
                 span: Tensor | None = None) -> RenderOutput:
@@ -455,7 +455,6 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         noise: the jitter's uniforms drawn beforehand (`draw_noise`); given, it is used
             whatever `perturb` says.
         create_graph: keep the graph of the SDF gradients (training: Eikonal loss).
-        occupancy: an occupancy grid (appended to `bounds`; kept for older callers).
         bounds: objects that narrow the rays' bounds (see `ray_bounds`).
         span: (B, 4) the rays' bounds computed beforehand (`ray_spans`, e.g. kept by the
             pixel pool) under culling and static bounds not in `bounds`: every ray is
@@ -464,7 +463,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     Returns:
         a `RenderOutput`.
     """
-    bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
+    bounds = tuple(bounds)
     if noise is None and perturb:
         noise = draw_noise(cfg, origins.shape[0], generator, origins.device)
     near, far, active, entry, exit_ = _ray_bounds(origins, dirs, cfg, bounds, span)

@@ -270,7 +270,7 @@ def test_grid_gives_the_same_render_on_rays_that_hit(sampler):
     for compact in (True, False):
         cfg = RenderConfig(cull_outside_sphere=True)
         cfg.occupancy.compact = compact
-        out = render_rays(model, o, d, cfg, sampler, occupancy=grid)
+        out = render_rays(model, o, d, cfg, sampler, bounds=(grid,))
         for k, v in out.items():
             assert torch.isfinite(v).all(), k
         assert out["active"][hit].all()
@@ -290,7 +290,7 @@ def test_rays_that_cross_no_occupied_cell_do_no_sdf_work():
     # rays through the unit sphere that pass the r = 0.5 sphere at distance >= 0.8
     o = torch.tensor([[-3.0, 0.8, 0.0], [-3.0, 0.0, -0.85], [0.9, -3.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    out = render_rays(model, o, d, RenderConfig(), "l0", occupancy=grid, create_graph=True)
+    out = render_rays(model, o, d, RenderConfig(), "l0", bounds=(grid,), create_graph=True)
     assert not out["active"].any()
     assert torch.equal(out["weight_sum"], torch.zeros(3, 1))
     assert torch.equal(out["color"], torch.zeros(3, 3))
@@ -299,7 +299,7 @@ def test_rays_that_cross_no_occupied_cell_do_no_sdf_work():
     o2 = torch.cat([o, torch.tensor([[-3.0, 0.0, 0.0]])])
     d2 = torch.cat([d, torch.tensor([[1.0, 0.0, 0.0]])])
     cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2)
-    out = render_rays(model, o2, d2, cfg, "l0", occupancy=grid)
+    out = render_rays(model, o2, d2, cfg, "l0", bounds=(grid,))
     assert out["active"].tolist() == [False, False, False, True]
     # render_rays keeps every batch's shape (inactive rays are masked); render_image skips
     # their networks: only the hitting ray is evaluated
