@@ -70,7 +70,7 @@ PHASES = {
     "encodings:forward_jacobian": "hashgrid",
     "encodings:forward": "hashgrid",
     "color:forward": "color",
-    "rendering:cos_anneal_alpha": "alpha",
+    "rendering:section_alpha": "alpha",
     "losses:neus_loss": "loss",
     "optimizer:zero_grad": "zero_grad",
     "adam:step": "optimizer",
