@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from neus_l0.config import RenderConfig
-from neus_l0.data.rays import image_rays
+from neus_l0.data.rays import rays_at
 from neus_l0.data.scene import Scene
 from neus_l0.rendering import RayBounds, ray_spans
 
@@ -123,16 +123,16 @@ def reachable_pixels(scene: Scene, cfg: RenderConfig, bounds: Sequence[RayBounds
     grids = [b.occupancy for b in bounds if isinstance(getattr(b, "occupancy", None), Tensor)]
     found, spans = [], []
     for v in range(scene.n_views):
-        o, d = (x.reshape(-1, 3) for x in image_rays(scene, v))
-        candidates = torch.arange(hw, device=o.device)
+        candidates = torch.arange(hw, device=scene.device)
         for grid in grids:
-            sil = hull_silhouette(grid.to(o.device), scene.intrinsics[v], scene.c2w[v],
+            sil = hull_silhouette(grid.to(scene.device), scene.intrinsics[v], scene.c2w[v],
                                   scene.height, scene.width).reshape(-1)
             candidates = candidates[sil[candidates]]
         for s in range(0, candidates.numel(), chunk):
-            rows = candidates[s:s + chunk]
-            span, active = ray_spans(o[rows], d[rows], cfg, bounds)
-            found.append(rows[active] + v * hw)
+            rows = candidates[s:s + chunk] + v * hw
+            rays = rays_at(scene, rows)  # the very rays a step draws: its spans fit exactly
+            span, active = ray_spans(rays["origins"], rays["dirs"], cfg, bounds)
+            found.append(rows[active])
             spans.append(span[active])
     pixels = torch.cat(found)
     if pixels.numel() == 0:

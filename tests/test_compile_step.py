@@ -58,3 +58,22 @@ def test_compiled_training_equals_eager_and_compiles_at_most_thrice(tmp_path):
     diff = torch.tensor(curve["eager"]) - torch.tensor(curve["comp"])
     assert diff[:5].abs().max() < 1e-5  # the same steps to float rounding ...
     assert (diff.abs() / torch.tensor(curve["eager"])).max() < 1e-2  # ... and curve
+
+
+def test_the_step_with_looked_up_spans_has_no_graph_break(tmp_path):
+    """A run's step: rays from the pixel pool with their spans under the visual hull."""
+    from neus_l0.pixel_pool import reachable_pixels
+    from neus_l0.train import run_hull
+
+    scene = sphere_scene(tmp_path / "s")
+    cfg = load_config("demo", ANALYTIC)
+    model = make_model(cfg)
+    bounds = run_hull(scene, cfg, tmp_path / "run")
+    pool = reachable_pixels(scene, cfg.render, bounds)
+    assert bounds and pool.spans is not None
+    inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), pool)
+    assert inputs.span is not None
+    torch._dynamo.reset()
+    ex = torch._dynamo.explain(render_and_loss)(model, inputs, cfg, cfg.sampler, ())
+    assert ex.graph_break_count == 0, [b.reason for b in ex.break_reasons]
+    assert ex.graph_count == 1

@@ -104,6 +104,17 @@ def test_section_weights_are_neus_formula(dtype):
             z, sdf, torch.zeros_like(radius), inv_s)[0], **tol)
 
 
+def test_hvs_draw_with_the_sections_lengths_is_the_plain_draw():
+    """`sample_pdf(lengths=...)`, as the up-sampling calls it, draws what it draws without."""
+    from neus_l0.sampling import quantiles, sample_pdf
+
+    for weights in (_sections().weights, torch.zeros(6, 16)):  # and the uniform fallback
+        sec = _sections()
+        u = quantiles((6,), 16, True, None, sec.z.dtype, sec.z.device)
+        with_len = sample_pdf(sec.z, weights, 16, u=u, lengths=sec.lengths())
+        assert torch.equal(with_len, sample_pdf(sec.z, weights, 16, u=u))
+
+
 def test_relative_pad_does_not_depend_on_the_weights_scale():
     sec = _sections()
     small = Sections(sec.z, sec.weights * 1e-3, *sec.estimates(), sec.inv_s)

@@ -25,10 +25,9 @@ import time
 from pathlib import Path
 
 import torch
+from demo_scene import small_demo_scene
 
 from neus_l0.config import load_config
-from neus_l0.data.scene import load_scene
-from neus_l0.data.synthetic import make_scene
 from neus_l0.train import build_loop, train_step
 
 
@@ -109,9 +108,7 @@ def main() -> None:
     device = torch.device(args.device)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        root = make_scene("demo", tmp / "scene", views=args.views, width=args.width,
-                          height=args.height, progress=False)
-        scene = load_scene(root, device=device)
+        scene = small_demo_scene(tmp, args.views, args.width, args.height, device)
         name = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
         print(f"# {datetime.date.today()} {name}, torch {torch.__version__}; scene demo "
               f"{args.views} views {args.width}x{args.height}; {args.warm} warm + "

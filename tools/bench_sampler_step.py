@@ -19,13 +19,11 @@ import argparse
 import statistics
 import tempfile
 import time
-from pathlib import Path
 
 import torch
+from demo_scene import small_demo_scene
 
 from neus_l0.config import load_config
-from neus_l0.data.scene import load_scene
-from neus_l0.data.synthetic import make_scene
 from neus_l0.samplers import build_sampler
 from neus_l0.train import StepSetup, make_model, make_optimizer, train_step
 
@@ -60,10 +58,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
-        root = make_scene("demo", Path(tmp) / "demo", views=args.views, width=args.width,
-                          height=args.height, seed=0, gt_voxel=4.0, point_spacing=2.0,
-                          progress=False)
-        scene = load_scene(root, device="cpu")
+        scene = small_demo_scene(tmp, args.views, args.width, args.height)
     for conf in args.confs.split(","):
         arms = {s: _arm(conf, s, args.overrides) for s in ("l0", "hvs")}
         for arm in arms.values():

@@ -22,14 +22,12 @@ import datetime
 import os
 import tempfile
 import time
-from pathlib import Path
 
 import torch
 from count_ops import OpCounter
+from demo_scene import small_demo_scene
 
 from neus_l0.config import load_config
-from neus_l0.data.scene import load_scene
-from neus_l0.data.synthetic import make_scene
 from neus_l0.train import make_model, make_occupancy, make_optimizer, make_scaler, train_step
 
 
@@ -53,10 +51,7 @@ def main() -> None:
     device = torch.device(args.device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     with tempfile.TemporaryDirectory() as tmp:
-        root = make_scene("demo", Path(tmp) / "demo", views=args.views, width=args.width,
-                          height=args.height, seed=0, gt_voxel=4.0, point_spacing=2.0,
-                          progress=False)
-        scene = load_scene(root, device=device)
+        scene = small_demo_scene(tmp, args.views, args.width, args.height, device)
 
     base = load_config(args.conf, args.overrides + ["model.sdf.gradient=autograd"])
     model = make_model(base, device)

@@ -35,14 +35,12 @@ import platform
 import statistics
 import tempfile
 import time
-from pathlib import Path
 
 import torch
+from demo_scene import small_demo_scene
 
 from neus_l0.compile_step import compiled_step
 from neus_l0.config import load_config
-from neus_l0.data.scene import load_scene
-from neus_l0.data.synthetic import make_scene
 from neus_l0.samplers import build_sampler
 from neus_l0.train import (
     StepSetup,
@@ -96,10 +94,7 @@ def main() -> None:
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
 
     with tempfile.TemporaryDirectory() as tmp:
-        root = make_scene("demo", Path(tmp) / "demo", views=args.views, width=args.width,
-                          height=args.height, seed=0, gt_voxel=4.0, point_spacing=2.0,
-                          progress=False)
-        scene = load_scene(root, device=device)
+        scene = small_demo_scene(tmp, args.views, args.width, args.height, device)
 
     base_cfg = load_config(args.conf, args.overrides)
     # Warm-up: train the baseline so that the measured state is not the initial sphere.
@@ -176,8 +171,9 @@ def main() -> None:
         b = random_rays(scene, cfg.train.batch_size, torch.Generator(device=device)
                         .manual_seed(2))
         with torch.no_grad():
+            grid = (r["grid"],) if r["grid"] is not None else ()
             out = render_rays(r["model"], b["origins"], b["dirs"], cfg.render, cfg.sampler,
-                              occupancy=r["grid"])
+                              bounds=grid)
         r["active"] = out["active"].float().mean().item()
         r["per_ray"] = out["z_vals"].shape[1]
         r["occ"] = r["grid"].fraction_occupied().item() if r["grid"] is not None else 1.0

@@ -35,11 +35,10 @@ import tempfile
 from pathlib import Path
 
 import torch
+from demo_scene import small_demo_scene
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from neus_l0.config import load_config
-from neus_l0.data.scene import load_scene
-from neus_l0.data.synthetic import make_scene
 from neus_l0.pixel_pool import reachable_pixels
 from neus_l0.samplers import build_sampler
 from neus_l0.train import (
@@ -145,10 +144,7 @@ def count_step_ops(conf: str, overrides: list[str], views: int = 4, width: int =
     """
     torch.manual_seed(0)
     with tempfile.TemporaryDirectory() as tmp:
-        root = make_scene("demo", Path(tmp) / "demo", views=views, width=width,
-                          height=height, seed=0, gt_voxel=4.0, point_spacing=2.0,
-                          progress=False)
-        scene = load_scene(root, device="cpu")
+        scene = small_demo_scene(tmp, views, width, height)
         cfg = load_config(conf, overrides)
         model = make_model(cfg, "cpu")
         setup = None
