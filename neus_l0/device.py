@@ -1,6 +1,11 @@
-"""The torch device a command runs on."""
+"""The torch device a command runs on, and waiting for it."""
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    import torch
 
 
 def pick_device(name: str | None) -> str:
@@ -24,3 +29,11 @@ def pick_device(name: str | None) -> str:
     if name == "cuda" and not torch.cuda.is_available():
         raise NeusL0Error("--device cuda: no CUDA device is available")
     return name
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (CUDA); nothing on the CPU."""
+    import torch
+
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)

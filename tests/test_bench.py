@@ -24,7 +24,7 @@ from neus_l0.bench.sample_distance import (
 )
 from neus_l0.bench.sweep import SweepSpec, default_conf, run_sweep
 from neus_l0.cli import main
-from neus_l0.config import load_config
+from neus_l0.config.load import load_config
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene, load_scene
 from neus_l0.errors import NeusL0Error
@@ -368,7 +368,7 @@ def test_sample_distance_hook_is_zero_for_samples_on_the_surface(monkeypatch):
         z = hits.repeat(1, render_cfg.n_importance // 2) + offset["value"]
         return {"z_fine": z}  # (B, n_importance): every fine sample on the sphere
 
-    monkeypatch.setattr("neus_l0.rendering.render_rays", fake_render)
+    monkeypatch.setattr("neus_l0.render.volume.render_rays", fake_render)
     hook = SampleDistanceHook(surface, n_rays=64)
     # float32 rays (|d| = 1 to ~1e-7) limit the exactness to ~1e-6 of the 20-unit radius
     assert hook(10, None, scene, cfg)["sample_dist"] == pytest.approx(0.0, abs=1e-4)

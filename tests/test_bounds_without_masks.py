@@ -9,12 +9,14 @@ import torch
 from test_rendering import sphere_model
 from test_train import SMALL, sphere_scene
 
-from neus_l0.config import BackgroundConfig, OccupancyConfig, RenderConfig, load_config
-from neus_l0.fields import BackgroundNeRF
-from neus_l0.hull import carve_hull
-from neus_l0.occupancy import OccupancyGrid
-from neus_l0.point_bound import PointBound
-from neus_l0.train import build_loop, update_occupancy
+from neus_l0.bounds.hull import carve_hull
+from neus_l0.bounds.occupancy import OccupancyGrid
+from neus_l0.bounds.points import PointBound
+from neus_l0.config.load import load_config
+from neus_l0.config.schema import BackgroundConfig, OccupancyConfig, RenderConfig
+from neus_l0.fields.background import BackgroundNeRF
+from neus_l0.train.loop import build_loop
+from neus_l0.train.step import update_occupancy
 
 
 def test_scene_without_masks_gets_no_hull(tmp_path):
@@ -69,7 +71,8 @@ def test_coarse_rare_grid_never_empties_a_cell_of_a_moving_sphere():
 
 
 def test_background_samples_start_outside_the_sphere_when_a_bound_narrows_rays(monkeypatch):
-    import neus_l0.rendering as rendering
+    import neus_l0.render.volume as rendering
+    from neus_l0.bounds.sphere import sphere_chord
 
     model = sphere_model()
     model.background = BackgroundNeRF(BackgroundConfig(hidden=16, layers=1, skip=[]))
@@ -88,7 +91,7 @@ def test_background_samples_start_outside_the_sphere_when_a_bound_narrows_rays(m
     d = torch.nn.functional.normalize(-o + 0.2 * torch.randn(64, 3, generator=g), dim=-1)
     cfg = RenderConfig(n_samples=8, n_importance=8, up_sample_steps=1, n_outside=4)
     rendering.render_rays(model, o, d, cfg, "hvs", bounds=(box,))
-    exit_ = rendering.sphere_chord(o, d)[1]
+    exit_ = sphere_chord(o, d)[1]
     assert bool((seen["far"] >= exit_ - 1e-6).all())
     pts = o[:, None] + d[:, None] * real(seen["far"], 4, 8, False)[..., None]
     assert bool((pts.norm(dim=-1) >= 1.0 - 1e-5).all())

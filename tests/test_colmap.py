@@ -191,8 +191,9 @@ def test_check_models_rules():
 def test_export_writes_the_sparse_points_and_their_box_holds_the_surface(tiny_scene, tmp_path):
     import torch
 
-    from neus_l0.point_bound import POINTS_FILE, PointBound, read_points
-    from neus_l0.rendering import sphere_chord
+    from neus_l0.bounds.points import PointBound
+    from neus_l0.bounds.sphere import sphere_chord
+    from neus_l0.data.points import POINTS_FILE, read_points
 
     _true_text_model(tiny_scene, tmp_path / "sparse", list(range(8)))
     model = read_model(tmp_path / "sparse")

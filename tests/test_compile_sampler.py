@@ -8,10 +8,11 @@ import warnings
 import pytest
 import torch
 
-import neus_l0.samplers as samplers_module
-from neus_l0.config import SamplerConfig, load_config
-from neus_l0.samplers import SAMPLERS, L0Sampler, Sections, build_sampler
-from neus_l0.sampling import sample_l0
+import neus_l0.sampling.upsample as samplers_module
+from neus_l0.config.load import load_config
+from neus_l0.config.schema import SAMPLERS, SamplerConfig
+from neus_l0.sampling.kernels import sample_l0
+from neus_l0.sampling.upsample import L0Sampler, Sections, build_sampler
 
 
 def _adversarial(B: int, N: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:

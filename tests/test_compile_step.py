@@ -4,9 +4,11 @@ import pytest
 import torch
 from test_train import SMALL, sphere_scene
 
-from neus_l0.config import load_config
+from neus_l0.config.load import load_config
 from neus_l0.errors import ConfigError
-from neus_l0.train import draw_step_inputs, make_model, render_and_loss, train
+from neus_l0.fields.model import make_model
+from neus_l0.train.loop import train
+from neus_l0.train.step import draw_step_inputs, render_and_loss
 
 ANALYTIC = ["model.sdf.gradient=analytic"]
 
@@ -62,8 +64,8 @@ def test_compiled_training_equals_eager_and_compiles_at_most_thrice(tmp_path):
 
 def test_the_step_with_looked_up_spans_has_no_graph_break(tmp_path):
     """A run's step: rays from the pixel pool with their spans under the visual hull."""
-    from neus_l0.pixel_pool import reachable_pixels
-    from neus_l0.train import run_hull
+    from neus_l0.bounds.pixel_pool import reachable_pixels
+    from neus_l0.train.loop import run_hull
 
     scene = sphere_scene(tmp_path / "s")
     cfg = load_config("demo", ANALYTIC)

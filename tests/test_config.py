@@ -4,11 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from neus_l0.config import (
+from neus_l0.config.load import (
     CONFS_DIR,
-    SAMPLERS,
-    Config,
-    SamplerConfig,
     config_from_dict,
     dump_config,
     load_config,
@@ -16,6 +13,7 @@ from neus_l0.config import (
     resolve_conf_path,
     to_dict,
 )
+from neus_l0.config.schema import SAMPLERS, Config, SamplerConfig
 from neus_l0.errors import ConfigError
 
 
@@ -86,7 +84,7 @@ def test_the_wheel_ships_the_configs(tmp_path):
         z.extractall(tmp_path / "site")
     assert sorted(p.name for p in (tmp_path / "site" / "neus_l0" / "confs").glob("*.yaml")) == \
         sorted(p.name for p in (ROOT / "confs").glob("*.yaml"))
-    code = ("import neus_l0.config as c; print(c.CONFS_DIR); "
+    code = ("import neus_l0.config.load as c; print(c.CONFS_DIR); "
             "print(c.resolve_conf_path('demo')); print(c.load_config('demo').train.iters)")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, check=True, text=True,
                          capture_output=True, env={"PYTHONPATH": str(tmp_path / "site"),
@@ -163,8 +161,8 @@ def test_every_builtin_config_loads():
 
 
 def test_one_registry_of_sampler_names():
-    from neus_l0.samplers import REGISTRY
-    from neus_l0.samplers import SAMPLERS as S
+    from neus_l0.config.schema import SAMPLERS as S
+    from neus_l0.sampling.upsample import REGISTRY
 
     assert SAMPLERS is S and tuple(S) == tuple(REGISTRY)
     assert {"hvs", "l0", "l0-inverse", "l0-linear", "neus-exact"} <= set(S)

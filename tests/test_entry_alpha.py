@@ -1,10 +1,10 @@
-"""The opacity of the stretch a narrowed ray skips (`rendering.section_alpha`'s `skipped`)."""
+"""The opacity of the stretch a narrowed ray skips (`section_alpha`'s `skipped`)."""
 
 import torch
 from test_rendering import AnalyticSphere, sphere_model  # noqa: F401
 
-from neus_l0.config import RenderConfig
-from neus_l0.rendering import render_rays, section_alpha
+from neus_l0.config.schema import RenderConfig
+from neus_l0.render.volume import render_rays, section_alpha
 
 
 class StartsAt:

@@ -11,17 +11,11 @@ import pytest
 import torch
 from test_train import SMALL, sphere_scene
 
-from neus_l0.checkpoint import (
-    CorruptCheckpointError,
-    list_checkpoints,
-    load_newest_checkpoint,
-    load_trained_model,
-)
 from neus_l0.cli import main
-from neus_l0.config import load_config
+from neus_l0.config.load import load_config
 from neus_l0.data.scene import load_scene, validate_scene
 from neus_l0.errors import NeusL0Error, SceneError
-from neus_l0.mesh_memory import (
+from neus_l0.mesh.memory import (
     BYTES_PER_FACE,
     EVAL_BYTES_PER_POINT,
     available_memory,
@@ -29,6 +23,12 @@ from neus_l0.mesh_memory import (
     largest_resolution,
     mesh_faces,
     plan_extraction,
+)
+from neus_l0.run.checkpoints import (
+    CorruptCheckpointError,
+    list_checkpoints,
+    load_newest_checkpoint,
+    load_trained_model,
 )
 
 
@@ -114,7 +114,7 @@ def test_plan_refuses_with_the_largest_resolution_that_fits():
 
 
 def test_plan_without_a_memory_figure_does_not_refuse(monkeypatch):
-    import neus_l0.mesh_memory as mm
+    import neus_l0.mesh.memory as mm
 
     monkeypatch.setattr(mm, "available_memory", lambda: None)
     assert plan_extraction("sparse", 10**6) == ("sparse", None)
@@ -130,7 +130,7 @@ def test_estimate_covers_the_measured_sparse_peak():
     import tracemalloc
 
     from neus_l0.data.shapes import Sphere
-    from neus_l0.mesh import sparse_marching_cubes
+    from neus_l0.mesh.extract import sparse_marching_cubes
 
     r = 0.7  # area 4 pi r^2 = 6.16, the estimator assumes 2 pi = 6.28
     R = 160
@@ -148,7 +148,7 @@ def test_estimate_covers_the_measured_sparse_peak():
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from neus_l0.train import train
+    from neus_l0.train.loop import train
 
     root = tmp_path_factory.mktemp("faults")
     cfg = load_config("demo", SMALL + ["train.iters=2", "train.save_every=1"])

@@ -5,16 +5,11 @@ import math
 import pytest
 import torch
 
-from neus_l0.config import BackgroundConfig, EncodingConfig, ModelConfig, SDFConfig
-from neus_l0.fields import (
-    BackgroundNeRF,
-    FrequencyEncoding,
-    IdentityEncoding,
-    build_encoding,
-    build_model,
-    inverse_sphere,
-    sdf_and_gradient,
-)
+from neus_l0.config.schema import BackgroundConfig, EncodingConfig, ModelConfig, SDFConfig
+from neus_l0.fields.background import BackgroundNeRF, inverse_sphere
+from neus_l0.fields.encodings import FrequencyEncoding, IdentityEncoding, build_encoding
+from neus_l0.fields.model import build_model
+from neus_l0.fields.sdf import sdf_and_gradient
 
 
 def _dirs(n, seed=0):

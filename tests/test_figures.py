@@ -29,12 +29,12 @@ def _write_results(root, rows):
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
     """A bench folder: the demo scene (6 views, 80x60) and two runs of 2 iterations each."""
-    from neus_l0.checkpoint import load_trained_model
-    from neus_l0.config import load_config
+    from neus_l0.config.load import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
-    from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import train
+    from neus_l0.mesh.extract import export_mesh, extract_mesh
+    from neus_l0.run.checkpoints import load_trained_model
+    from neus_l0.train.loop import train
 
     root = tmp_path_factory.mktemp("bench")
     scene_dir = root / "scenes" / "demo"
@@ -123,7 +123,7 @@ def test_select_runs_defaults_and_paths(bench):
 
 def test_raster_render_depth_agrees_with_gt_depth(bench):
     from neus_l0.figures.views import scene_cameras
-    from neus_l0.preview import raster_render
+    from neus_l0.mesh.preview import raster_render
 
     scene_dir = bench / "scenes" / "demo"
     cam = scene_cameras(scene_dir)[0]
@@ -196,7 +196,7 @@ def test_pit_ray_hits_the_true_surface_inside_the_pit(bench):
 def test_section_pieces_curve_gives_each_section_its_weight():
     """The plotted L0 density of the default draw: mass 1, each section its weight's share."""
     from neus_l0.figures.ray_weights import section_pieces_curve
-    from neus_l0.sampling import l0_section_pieces
+    from neus_l0.sampling.kernels import l0_section_pieces
 
     z = torch.tensor([[0.0, 0.4, 0.5, 0.9, 1.0]], dtype=torch.float64)
     w = torch.tensor([[0.1, 0.5, 0.3, 0.1]], dtype=torch.float64)

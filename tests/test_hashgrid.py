@@ -6,10 +6,18 @@ import math
 import pytest
 import torch
 
-from neus_l0.config import EncodingConfig, ModelConfig, SDFConfig, load_config
+from neus_l0.config.load import load_config
+from neus_l0.config.schema import EncodingConfig, ModelConfig, SDFConfig
 from neus_l0.errors import ConfigError
-from neus_l0.fields import HashGridEncoding, build_encoding, build_model, sdf_and_gradient
-from neus_l0.fields.encodings import HASH_PRIMES, level_resolutions, spatial_hash
+from neus_l0.fields.encodings import (
+    HASH_PRIMES,
+    HashGridEncoding,
+    build_encoding,
+    level_resolutions,
+    spatial_hash,
+)
+from neus_l0.fields.model import build_model
+from neus_l0.fields.sdf import sdf_and_gradient
 
 
 def tiny_grid(**kw) -> HashGridEncoding:

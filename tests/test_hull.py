@@ -13,8 +13,14 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from neus_l0.bounds.hull import (
+    DEFAULT_MARGIN_PX,
+    VisualHull,
+    carve_hull,
+    check_hull,
+    hull_from_scene,
+)
 from neus_l0.errors import NeusL0Error
-from neus_l0.hull import DEFAULT_MARGIN_PX, VisualHull, carve_hull, check_hull, hull_from_scene
 
 BUNNY = Path("/work/shared/meshes/bunny.obj")
 
@@ -163,7 +169,7 @@ def test_margin_grows_the_hull_monotonically():
 
 def test_coarse_to_fine_matches_the_plain_carving():
     """R divisible by 4 carves coarse first; every cell the plain rule keeps stays kept."""
-    from neus_l0 import hull as H
+    from neus_l0.bounds import hull as H
 
     masks, K, c2w = _sphere_scene()
     dists = [H._background_distance(m) for m in masks]
@@ -424,7 +430,7 @@ def test_save_load_roundtrip(tmp_path, demo_hull):
 
 
 def test_hull_for_run_carves_once_then_loads(tmp_path, demo_scene):
-    from neus_l0.hull import hull_for_run
+    from neus_l0.bounds.hull import hull_for_run
 
     _, scene = demo_scene
     path = tmp_path / "run" / "hull.pt"
@@ -470,7 +476,7 @@ def test_inspect_hull_cli(tmp_path, demo_scene):
 
 
 def _ball_hull(R: int = 64, radius: float = 0.55) -> VisualHull:
-    from neus_l0 import hull as H
+    from neus_l0.bounds import hull as H
 
     c = H._cell_axis(R)
     r2 = c[:, None, None] ** 2 + c[None, :, None] ** 2 + c[None, None, :] ** 2
@@ -485,7 +491,7 @@ def _object_and_floater(p: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("res", [65, 129])
 def test_sparse_meshing_drops_the_floater_outside_the_hull(res):
-    from neus_l0.mesh import sparse_marching_cubes
+    from neus_l0.mesh.extract import sparse_marching_cubes
 
     hull = _ball_hull()
     v0, f0, s0 = sparse_marching_cubes(_object_and_floater, res)
@@ -505,7 +511,7 @@ def test_sparse_meshing_drops_the_floater_outside_the_hull(res):
 
 def test_hull_caps_a_leak_and_extract_mesh_dense_agrees():
     """A negative region that crosses the hull is capped at the hull: still watertight."""
-    from neus_l0.mesh import extract_mesh, sparse_marching_cubes
+    from neus_l0.mesh.extract import extract_mesh, sparse_marching_cubes
 
     hull = _ball_hull(radius=0.45)
 

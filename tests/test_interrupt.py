@@ -1,4 +1,4 @@
-"""`neus_l0.interrupt.StopOnSignal`: signals become a flag inside, handlers come back after."""
+"""`neus_l0.train.signals.StopOnSignal`: signals become a flag inside, handlers come back after."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from neus_l0.interrupt import StopOnSignal
+from neus_l0.train.signals import StopOnSignal
 
 
 def _wait_for(flag, seconds=5.0):
@@ -104,7 +104,7 @@ def test_default_handling_returns_after_the_context():
     """End to end in a child process: survives SIGTERM inside, dies of it outside."""
     code = textwrap.dedent("""
         import os, signal, time
-        from neus_l0.interrupt import StopOnSignal
+        from neus_l0.train.signals import StopOnSignal
         with StopOnSignal() as stop:
             os.kill(os.getpid(), signal.SIGTERM)
             for _ in range(500):

@@ -6,7 +6,7 @@ import torch
 import trimesh
 
 from neus_l0.errors import NeusL0Error
-from neus_l0.mesh import (
+from neus_l0.mesh.extract import (
     clean_mesh,
     export_mesh,
     extract_mesh,

@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from neus_l0.errors import NeusL0Error
-from neus_l0.mesh_cleanup import CleanupOptions, clean_up
+from neus_l0.mesh.cleanup import CleanupOptions, clean_up
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +91,7 @@ def test_options_are_checked():
 
 
 def test_mesh_command_flags(tmp_path, capsys, monkeypatch):
-    import neus_l0.checkpoint
+    import neus_l0.run.checkpoints
     from neus_l0.cli import main
     from neus_l0.data.shapes import Sphere
 
@@ -109,7 +109,7 @@ def test_mesh_command_flags(tmp_path, capsys, monkeypatch):
         return _Model(), None, {"scale_mat": scale, "path": tmp_path / "ckpt.pt",
                                 "iteration": 7}
 
-    monkeypatch.setattr(neus_l0.checkpoint, "load_trained_model", fake_load)
+    monkeypatch.setattr(neus_l0.run.checkpoints, "load_trained_model", fake_load)
     out = tmp_path / "m.ply"
     assert main(["mesh", str(tmp_path), "--resolution", "64", "--out", str(out),
                  "--simplify", "500", "--smooth", "3", "--min-component", "0.05",

@@ -5,9 +5,7 @@ import math
 import pytest
 import torch
 
-from neus_l0.config import OccupancyConfig, load_config
-from neus_l0.errors import ConfigError
-from neus_l0.occupancy import (
+from neus_l0.bounds.occupancy import (
     OccupancyGrid,
     cell_centres,
     dilate,
@@ -15,6 +13,9 @@ from neus_l0.occupancy import (
     occupied_cells,
     ray_spans,
 )
+from neus_l0.config.load import load_config
+from neus_l0.config.schema import OccupancyConfig
+from neus_l0.errors import ConfigError
 
 # ------------------------------------------------------------------------------------------
 # Analytic SDFs (exact signed distances) with random placement and size.

@@ -3,11 +3,11 @@
 import torch
 from test_train import sphere_scene
 
-from neus_l0.config import RenderConfig
+from neus_l0.bounds.hull import hull_from_scene
+from neus_l0.bounds.pixel_pool import hull_silhouette, reachable_pixels
+from neus_l0.bounds.spans import ray_bounds
+from neus_l0.config.schema import RenderConfig
 from neus_l0.data.rays import image_rays
-from neus_l0.hull import hull_from_scene
-from neus_l0.pixel_pool import hull_silhouette, reachable_pixels
-from neus_l0.rendering import ray_bounds
 
 
 def _brute_force(scene, cfg, bounds):
@@ -43,7 +43,7 @@ def test_the_silhouette_covers_every_ray_that_meets_a_voxel(tmp_path):
     r = (c[:, None, None] ** 2 + c[None, :, None] ** 2 + c[None, None, :] ** 2).sqrt()
     # scattered single cells near the centre: gaps between them are the hard case
     occ = (torch.rand(32, 32, 32, generator=g) < 0.05) & (r < 0.45)
-    from neus_l0.hull import VisualHull
+    from neus_l0.bounds.hull import VisualHull
 
     hull = VisualHull(occ)
     cfg = RenderConfig(cull_outside_sphere=True)
@@ -67,8 +67,9 @@ def test_the_pool_keeps_each_pixels_span_and_a_step_may_use_it(tmp_path):
     with them is rendering with the hull; without static bounds nothing is kept."""
     from test_rendering import sphere_model
 
+    from neus_l0.bounds.spans import ray_spans
     from neus_l0.data.rays import rays_at
-    from neus_l0.rendering import ray_spans, render_rays
+    from neus_l0.render.volume import render_rays
 
     scene = sphere_scene(tmp_path / "s", n_views=4, H=30, W=40, radius=0.4)
     hull = hull_from_scene(scene, 64, 2.0)

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from neus_l0.config import load_config
-from neus_l0.point_bound import MIN_POINTS, POINTS_FILE, PointBound, read_points, write_points
-from neus_l0.rendering import sphere_chord
+from neus_l0.bounds.points import MIN_POINTS, PointBound
+from neus_l0.bounds.sphere import sphere_chord
+from neus_l0.config.load import load_config
+from neus_l0.data.points import POINTS_FILE, read_points, write_points
 
 
 def _rotation(seed: int) -> np.ndarray:
@@ -102,7 +103,7 @@ def test_points_file_round_trip_and_too_few_points(tmp_path):
 def test_run_uses_the_box_only_when_asked_and_without_masks(tmp_path):
     from types import SimpleNamespace
 
-    from neus_l0.train import run_hull
+    from neus_l0.train.loop import run_hull
 
     sm = np.diag([2.0, 2.0, 2.0, 1.0])
     sm[:3, 3] = [1.0, -2.0, 0.5]
@@ -122,8 +123,8 @@ def test_a_damaged_points_file_is_a_clear_error(tmp_path):
     import numpy as np
     import pytest
 
+    from neus_l0.data.points import read_points
     from neus_l0.errors import SceneError
-    from neus_l0.point_bound import read_points
 
     bad = tmp_path / "sparse_points.npz"
     bad.write_bytes(b"not a zip")

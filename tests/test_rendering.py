@@ -6,25 +6,21 @@ import pytest
 import torch
 from torch import nn
 
-from neus_l0.config import ColorConfig, RenderConfig, VarianceConfig
-from neus_l0.fields import ColorNetwork, NeuSModel, SingleVariance, build_model
-from neus_l0.losses import eikonal
-from neus_l0.rendering import (
-    SAMPLERS,
-    coarse_z_vals,
-    near_far_from_sphere,
-    outside_z_vals,
-    render_image,
-    render_rays,
-    transmittance,
-)
-from neus_l0.samplers import (
+from neus_l0.bounds.sphere import near_far_from_sphere
+from neus_l0.config.schema import SAMPLERS, ColorConfig, RenderConfig, VarianceConfig
+from neus_l0.fields.color import ColorNetwork
+from neus_l0.fields.model import NeuSModel, build_model
+from neus_l0.fields.variance import SingleVariance
+from neus_l0.render.volume import coarse_z_vals, outside_z_vals, render_image, render_rays
+from neus_l0.sampling.upsample import (
     Sections,
     build_sampler,
     merge_sorted,
     section_to_point_weights,
+    transmittance,
     upsample_section_weights,
 )
+from neus_l0.train.losses import eikonal
 
 RADIUS = 0.5
 
@@ -181,7 +177,7 @@ def test_l0_midpoint_default_at_least_as_tight_as_endpoint():
     o, d, hit, t_hit = rays_at_sphere(256)
     frac = {}
     for placement in ("midpoint", "endpoint"):
-        from neus_l0.config import SamplerConfig
+        from neus_l0.config.schema import SamplerConfig
 
         out = render_rays(model, o, d, RenderConfig(), SamplerConfig(placement=placement))
         frac[placement] = ((out["z_fine"][hit] - t_hit[hit, None]).abs() < 0.005).float().mean()
@@ -190,7 +186,7 @@ def test_l0_midpoint_default_at_least_as_tight_as_endpoint():
 
 def test_render_rays_gradients_and_background():
     torch.manual_seed(0)
-    from neus_l0.config import ModelConfig, SDFConfig
+    from neus_l0.config.schema import ModelConfig, SDFConfig
 
     mcfg = ModelConfig(sdf=SDFConfig(hidden=64, layers=2, skip=[], feature_dim=16))
     mcfg.color.hidden = mcfg.background.hidden = 32
@@ -251,8 +247,8 @@ def counting_model(s_init=0.6):
 
 
 def sphere_grid(model, resolution=64):
-    from neus_l0.config import OccupancyConfig
-    from neus_l0.occupancy import OccupancyGrid
+    from neus_l0.bounds.occupancy import OccupancyGrid
+    from neus_l0.config.schema import OccupancyConfig
 
     grid = OccupancyGrid(OccupancyConfig(enabled=True, resolution=resolution))
     grid.update(model.sdf.sdf, model.variance.inv_s())
@@ -333,8 +329,8 @@ def test_rays_missing_the_sphere_get_no_samples():
 
 
 def test_no_background_network_with_masks():
-    from neus_l0.config import load_config
-    from neus_l0.train import make_model
+    from neus_l0.config.load import load_config
+    from neus_l0.fields.model import make_model
 
     cfg = load_config("wmask", ["model.sdf.hidden=48", "model.color.hidden=16"])
     assert cfg.train.mask_weight > 0 and cfg.render.n_outside == 0
@@ -353,7 +349,7 @@ def test_no_background_network_with_masks():
 
 def test_culling_keeps_the_background_model_for_missed_rays():
     torch.manual_seed(0)
-    from neus_l0.config import ModelConfig, SDFConfig
+    from neus_l0.config.schema import ModelConfig, SDFConfig
 
     mcfg = ModelConfig(sdf=SDFConfig(hidden=32, layers=2, skip=[], feature_dim=8))
     mcfg.color.hidden = mcfg.background.hidden = 16
@@ -371,7 +367,7 @@ def test_culling_keeps_the_background_model_for_missed_rays():
 
 
 def test_eikonal_subset_estimates_the_full_term():
-    from neus_l0.losses import eikonal_subset
+    from neus_l0.train.losses import eikonal_subset
 
     g = torch.Generator().manual_seed(0)
     grads = torch.randn(64, 32, 3, generator=g)

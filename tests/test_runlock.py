@@ -1,4 +1,4 @@
-"""`neus_l0.runlock.RunLock`: one holder per run folder, stale locks taken over."""
+"""`neus_l0.run.lock.RunLock`: one holder per run folder, stale locks taken over."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from neus_l0.errors import NeusL0Error
-from neus_l0.runlock import LOCK_NAME, RunLock, pid_alive
+from neus_l0.run.lock import LOCK_NAME, RunLock, pid_alive
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -103,7 +103,7 @@ def test_unreadable_lock_is_stale_only_once_old(tmp_path):
 def test_a_live_holder_in_another_process_refuses_until_it_dies(tmp_path):
     code = textwrap.dedent(f"""
         import time
-        from neus_l0.runlock import RunLock
+        from neus_l0.run.lock import RunLock
         with RunLock({str(tmp_path)!r}):
             print("locked", flush=True)
             time.sleep(120)
@@ -130,7 +130,7 @@ def test_racing_takeovers_of_one_stale_lock_leave_one_holder(tmp_path):
     code = textwrap.dedent(f"""
         import time
         from neus_l0.errors import NeusL0Error
-        from neus_l0.runlock import RunLock
+        from neus_l0.run.lock import RunLock
         time.sleep(max(0.0, {time.time() + 1.5!r} - time.time()))  # start together
         try:
             with RunLock({str(tmp_path)!r}, log=lambda m: None):

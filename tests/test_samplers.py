@@ -1,4 +1,4 @@
-"""`neus_l0.samplers`: the registry, the sampler objects, and NeuS's up-sampling rounds."""
+"""`neus_l0.sampling.upsample`: the registry, the sampler objects, and NeuS's up-sampling rounds."""
 
 from __future__ import annotations
 
@@ -7,11 +7,12 @@ import warnings
 import pytest
 import torch
 
-from neus_l0 import rendering
-from neus_l0.config import RenderConfig, SamplerConfig
+from neus_l0.bounds.sphere import near_far_from_sphere
+from neus_l0.config.schema import SAMPLERS, SamplerConfig
 from neus_l0.data.shapes import Sphere
-from neus_l0.samplers import (
-    SAMPLERS,
+from neus_l0.render import volume as rendering
+from neus_l0.sampling.kernels import sample_l0, sample_l0_sections
+from neus_l0.sampling.upsample import (
     HVSSampler,
     L0Sampler,
     NeuSExactSampler,
@@ -21,7 +22,6 @@ from neus_l0.samplers import (
     up_sample,
     upsample_section_weights,
 )
-from neus_l0.sampling import sample_l0, sample_l0_sections
 
 
 def _sections(B: int = 6, N: int = 17, seed: int = 0) -> Sections:
@@ -106,7 +106,7 @@ def test_section_weights_are_neus_formula(dtype):
 
 def test_hvs_draw_with_the_sections_lengths_is_the_plain_draw():
     """`sample_pdf(lengths=...)`, as the up-sampling calls it, draws what it draws without."""
-    from neus_l0.sampling import quantiles, sample_pdf
+    from neus_l0.sampling.kernels import quantiles, sample_pdf
 
     for weights in (_sections().weights, torch.zeros(6, 16)):  # and the uniform fallback
         sec = _sections()
@@ -175,7 +175,7 @@ def _sphere_rays(B: int = 32):
 @pytest.mark.parametrize("name", SAMPLERS)
 def test_up_sample_rounds(name):
     o, d = _sphere_rays()
-    near, far = rendering.near_far_from_sphere(o, d)
+    near, far = near_far_from_sphere(o, d)
     z = rendering.coarse_z_vals(near, far, 16, perturb=False)
     z_all, z_new = up_sample(Sphere((0.0, 0.0, 0.0), 0.5), o, d, z, build_sampler(name), 16, 2)
     assert z_all.shape == (32, 32) and z_new.shape == (32, 16)
@@ -192,34 +192,10 @@ def test_neus_exact_lands_closer_to_a_sphere_than_hvs():
     o, d = _sphere_rays(64)
     b = (o * d).sum(-1)
     hit = -b - (b * b - ((o * o).sum(-1) - 0.25)).sqrt()  # (B,) ray-sphere intersection
-    near, far = rendering.near_far_from_sphere(o, d)
+    near, far = near_far_from_sphere(o, d)
     z = rendering.coarse_z_vals(near, far, 16, perturb=False)
     med = {}
     for name in ("hvs", "neus-exact"):
         _, z_new = up_sample(Sphere((0.0, 0.0, 0.0), 0.5), o, d, z, build_sampler(name), 16, 2)
         med[name] = (z_new - hit[:, None]).abs().median().item()
     assert med["neus-exact"] < 0.8 * med["hvs"]
-
-
-def test_up_sample_equals_the_old_rendering_rounds():
-    """While rendering.py still has its own rounds: the moved copy draws the same samples."""
-    if not hasattr(rendering, "draw_fine_samples"):
-        pytest.skip("rendering.py no longer has its own up-sampling")
-    sphere = Sphere((0.0, 0.0, 0.0), 0.5)
-
-    class _Model:  # the old up_sample reads model.sdf.sdf
-        class sdf:  # noqa: N801
-            @staticmethod
-            def sdf(p):
-                return sphere(p)
-
-    o, d = _sphere_rays()
-    near, far = rendering.near_far_from_sphere(o, d)
-    z = rendering.coarse_z_vals(near, far, 16, perturb=False)
-    cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2)
-    for name in ("hvs", "l0", "l0-linear"):
-        old = rendering.up_sample(_Model, o, d, z, cfg, name)
-        old_l0 = SamplerConfig(name=name, blur=True, pad=cfg.l0_pad, pad_mode="absolute")
-        new = up_sample(sphere, o, d, z, build_sampler(old_l0), 16, 2)
-        torch.testing.assert_close(new[0], old[0])
-        torch.testing.assert_close(new[1], old[1])

@@ -17,7 +17,7 @@ from sampling_reference import (
     maxblur as maxblur_ref,
 )
 
-from neus_l0.sampling import (
+from neus_l0.sampling.kernels import (
     KINDS,
     maxblur,
     piece_inverse_cdf,
@@ -162,7 +162,7 @@ def test_kinds_coincide_as_b_tends_to_a():
 def test_series_and_closed_forms_are_exact_around_the_threshold(kind):
     from sampling_reference import invert_piece
 
-    from neus_l0.sampling import _series_threshold
+    from neus_l0.sampling.kernels import _series_threshold
 
     thr = _series_threshold(torch.float64)
     qs = np.array([0.0, 0.1, 0.37, 0.5, 0.9, 1.0])

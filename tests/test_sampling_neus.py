@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from neus_section_reference import invert_section, sample_neus_ref
 
-from neus_l0.sampling import neus_section_inverse_cdf, quantiles, sample_neus_sections
+from neus_l0.sampling.kernels import neus_section_inverse_cdf, quantiles, sample_neus_sections
 
 PAIRS = [(0.3, -0.2), (5.0, -5.0), (100.0, 90.0), (-100.0, -200.0), (1e-3, 0.0),
          (500.0, -500.0), (3.0, 3.0001), (-2.0, 4.0), (0.0, -1e-6), (50.0, 49.5),

@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_sampling_stress import _check, rays
 
-from neus_l0.sampling import KINDS, sample_l0_sections, sample_pdf
+from neus_l0.sampling.kernels import KINDS, sample_l0_sections, sample_pdf
 
 
 def _interp(kind: str, a: float, b: float, s: np.ndarray) -> np.ndarray:
@@ -127,7 +127,7 @@ def test_sections_next_to_empty_ones_keep_their_share(kind):
 
 
 def test_plotted_pieces_integrate_to_each_sections_weight_in_every_kind():
-    from neus_l0.sampling import l0_section_pieces, piece_mass
+    from neus_l0.sampling.kernels import l0_section_pieces, piece_mass
 
     z = torch.tensor([[0.0, 0.1, 0.35, 0.4, 0.9, 1.0]], dtype=torch.float64)
     w = torch.tensor([[0.0, 0.6, 0.0, 0.3, 0.1]], dtype=torch.float64)

@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sampling_reference import sample_l0_ref
 
-from neus_l0.sampling import KINDS, maxblur, sample_l0, sample_pdf
+from neus_l0.sampling.kernels import KINDS, maxblur, sample_l0, sample_pdf
 
 DTYPES = [torch.float32, torch.float64]
 

@@ -5,10 +5,12 @@ at second order, and the hash grid's steps and the weight-norm cache behave."""
 import pytest
 import torch
 
-from neus_l0.config import EncodingConfig, ModelConfig, SDFConfig
+from neus_l0.config.schema import EncodingConfig, ModelConfig, SDFConfig
 from neus_l0.errors import ConfigError
-from neus_l0.fields import FrequencyEncoding, HashGridEncoding, build_model, sdf_and_gradient
+from neus_l0.fields.encodings import FrequencyEncoding, HashGridEncoding
 from neus_l0.fields.linear import layer_weight
+from neus_l0.fields.model import build_model
+from neus_l0.fields.sdf import sdf_and_gradient
 
 
 def _grid(**kw) -> EncodingConfig:
@@ -231,9 +233,10 @@ def test_no_graph_breaks_for_torch_compile(method):
 def test_training_steps_match_autograd_end_to_end(tiny_scene):
     """The demo config's training step (one backward for `analytic`) gives autograd's
     losses step after step from the same state; finite differences stay close at first."""
-    from neus_l0.config import load_config
+    from neus_l0.config.load import load_config
     from neus_l0.data.scene import load_scene
-    from neus_l0.train import make_model, make_optimizer, train_step
+    from neus_l0.fields.model import make_model
+    from neus_l0.train.step import make_optimizer, train_step
 
     scene = load_scene(tiny_scene)
     losses = {}

@@ -1,4 +1,4 @@
-"""`neus_l0.tensorboard_log.TensorBoardLogger`: what is written reads back from the events."""
+"""`neus_l0.train.tensorboard.TensorBoardLogger`: what is written reads back from the events."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from neus_l0.tensorboard_log import TensorBoardLogger
+from neus_l0.train.tensorboard import TensorBoardLogger
 
 event_accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
 

@@ -8,12 +8,7 @@ import pytest
 import trimesh
 
 from neus_l0.errors import NeusL0Error
-from neus_l0.texture import (
-    bake_texture,
-    dilate_texture,
-    rasterize_atlas,
-    write_textured_obj,
-)
+from neus_l0.mesh.texture import bake_texture, dilate_texture, rasterize_atlas, write_textured_obj
 
 
 def colour_of(points):
@@ -124,7 +119,7 @@ def test_textured_obj_loads_back(baked, tmp_path):
 def test_mesh_command_texture(tmp_path, capsys, monkeypatch):
     import torch
 
-    import neus_l0.checkpoint
+    import neus_l0.run.checkpoints
     from neus_l0.cli import main
     from neus_l0.data.shapes import Sphere
 
@@ -147,7 +142,7 @@ def test_mesh_command_texture(tmp_path, capsys, monkeypatch):
         return _Model(), None, {"scale_mat": np.eye(4), "path": tmp_path / "ckpt.pt",
                                 "iteration": 7}
 
-    monkeypatch.setattr(neus_l0.checkpoint, "load_trained_model", fake_load)
+    monkeypatch.setattr(neus_l0.run.checkpoints, "load_trained_model", fake_load)
     out = tmp_path / "t.obj"
     assert main(["mesh", str(tmp_path), "--resolution", "40", "--texture", "--texture-size",
                  "128", "--simplify", "800", "--out", str(out)]) == 0

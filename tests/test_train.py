@@ -7,19 +7,19 @@ import numpy as np
 import pytest
 import torch
 
-from neus_l0.checkpoint import (
+from neus_l0.config.load import load_config
+from neus_l0.config.schema import SAMPLERS
+from neus_l0.data.rays import pixel_grid, pixel_rays
+from neus_l0.data.scene import Scene
+from neus_l0.errors import ConfigError, NeusL0Error
+from neus_l0.run.checkpoints import (
     latest_checkpoint,
     list_checkpoints,
     load_checkpoint,
     load_trained_model,
 )
-from neus_l0.config import load_config
-from neus_l0.data.rays import pixel_grid, pixel_rays
-from neus_l0.data.scene import Scene
-from neus_l0.errors import ConfigError, NeusL0Error
-from neus_l0.rendering import SAMPLERS
-from neus_l0.schedule import cos_anneal_ratio, lr_factor
-from neus_l0.train import train
+from neus_l0.train.loop import train
+from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
 # A tiny frequency-encoded MLP on top of confs/demo.yaml (whose SDF is a hash grid since the
 # "Speed" work; the demo tests below run the hash grid itself).
@@ -198,9 +198,9 @@ def test_max_seconds_stops_and_checkpoints(scene, tmp_path):
 
 def test_hooks_join_the_metrics_and_do_not_count_as_training_time(scene, tmp_path,
                                                                    monkeypatch):
-    import neus_l0.train as train_module
+    import neus_l0.train.state as state_module
 
-    real = train_module.time.monotonic
+    real = state_module.time.monotonic
     fake = {"offset": 0.0}
 
     class Clock:  # real time plus 100 s for every hook call
@@ -208,7 +208,7 @@ def test_hooks_join_the_metrics_and_do_not_count_as_training_time(scene, tmp_pat
         def monotonic():
             return real() + fake["offset"]
 
-    monkeypatch.setattr(train_module, "time", Clock)
+    monkeypatch.setattr(state_module, "time", Clock)
     calls = []
 
     def slow_hook(iteration, model, scene_, cfg_):
@@ -370,7 +370,7 @@ def test_a_few_steps_with_the_grid_lower_the_loss(scene, tmp_path):
     occ = state["occupancy"]["occ"]
     assert occ.shape == (32, 32, 32) and 0 < occ.float().mean() < 1.0
     # the scene's sphere (radius 0.5) is kept: cells on its surface stay occupied
-    from neus_l0.occupancy import cell_centres
+    from neus_l0.bounds.occupancy import cell_centres
 
     r = cell_centres(32).norm(dim=-1)
     assert occ[(r - 0.5).abs() < 0.01].all()
@@ -389,7 +389,8 @@ def test_resume_with_the_grid_equals_uninterrupted(scene, tmp_path):
 
 
 def test_amp_is_a_no_op_on_the_cpu(scene):
-    from neus_l0.train import autocast, make_model, make_optimizer, make_scaler, train_step
+    from neus_l0.fields.model import make_model
+    from neus_l0.train.step import autocast, make_optimizer, make_scaler, train_step
 
     cfg = load_config("demo", SMALL)
     amp = load_config("demo", SMALL + ["train.amp=fp16"])
@@ -416,7 +417,7 @@ def test_amp_trains_on_cuda(scene, tmp_path, amp):
 
 
 def test_next_batch_size_closed_form():
-    from neus_l0.train import next_batch_size
+    from neus_l0.train.step import next_batch_size
 
     cfg = load_config("demo", ["train.batch_size=128", "train.sample_budget=8192"])
     assert next_batch_size(128, 4096.0, cfg) == 256    # half the budget: twice the rays

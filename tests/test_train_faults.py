@@ -8,11 +8,11 @@ import pytest
 import torch
 from test_train import SMALL, sphere_scene
 
-from neus_l0.checkpoint import latest_checkpoint, load_checkpoint
-from neus_l0.config import load_config
+from neus_l0.config.load import load_config
 from neus_l0.errors import NeusL0Error
-from neus_l0.runlock import RunLock
-from neus_l0.train import train
+from neus_l0.run.checkpoints import latest_checkpoint, load_checkpoint
+from neus_l0.run.lock import RunLock
+from neus_l0.train.loop import train
 
 
 @pytest.fixture
@@ -81,7 +81,8 @@ def test_tensorboard_events_hold_the_training_curves(scene, tmp_path):
 
 def test_the_no_grad_passes_see_every_optimiser_update(scene):
     """The up-sampling's cached weight-norm weights follow the fused Adam's updates."""
-    from neus_l0.train import make_model, make_optimizer, train_step
+    from neus_l0.fields.model import make_model
+    from neus_l0.train.step import make_optimizer, train_step
 
     cfg = load_config("demo", SMALL)
     model = make_model(cfg)

@@ -13,11 +13,12 @@ import pytest
 import torch
 from test_train import SMALL, sphere_scene
 
-import neus_l0.train as train_module
-from neus_l0.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
-from neus_l0.config import load_config
+import neus_l0.train.loop as train_module
+import neus_l0.train.state as state_module
+from neus_l0.config.load import load_config
 from neus_l0.errors import NeusL0Error
-from neus_l0.train import train
+from neus_l0.run.checkpoints import latest_checkpoint, list_checkpoints, load_checkpoint
+from neus_l0.train.loop import train
 
 
 class FakeClock:
@@ -45,7 +46,7 @@ def clock(monkeypatch):
         fake.now += 1.0
         return real_step(*args, **kwargs)
 
-    monkeypatch.setattr(train_module, "time", fake)
+    monkeypatch.setattr(state_module, "time", fake)
     monkeypatch.setattr(train_module, "train_step", step)
     return fake
 
@@ -84,13 +85,13 @@ def test_snapshot_writing_is_not_training_time(scene, tmp_path, clock, monkeypat
     plain = train(scene, load_config("demo", base), tmp_path / "plain", progress=False)
     assert plain.iteration == 11 and plain.stopped_early  # 11 s > 10 s after step 11
 
-    real_save = train_module.save_checkpoint
+    real_save = state_module.save_checkpoint
 
     def slow_save(*args, **kwargs):
         clock.now += 100.0  # each checkpoint write takes 100 s of wall-clock
         return real_save(*args, **kwargs)
 
-    monkeypatch.setattr(train_module, "save_checkpoint", slow_save)
+    monkeypatch.setattr(state_module, "save_checkpoint", slow_save)
     run = tmp_path / "snap"
     res = train(scene, load_config("demo", base), run, progress=False,
                 snapshots=[2.5, 5.0, 50.0])

@@ -7,7 +7,7 @@ Usage:
 For rays through pixels inside each synthetic scene's masks (`object_rays`), the coarse
 samples are placed as training places them without jitter (`coarse_z_vals`, `n` uniform
 samples in the ray's bounds): in the unit sphere's chord (`render.cull_outside_sphere`),
-and in the chord narrowed by the scene's default visual hull (`neus_l0.hull`). No network
+and in the chord narrowed by the scene's default visual hull (`neus_l0.bounds.hull`). No network
 is involved. Printed per scene: the fraction of coarse samples within `--fraction` of the
 object's size (its ground-truth bounding-box diagonal) of the true surface, the mean
 spacing of the samples in world units, and how much of the sphere the hull keeps.
@@ -21,10 +21,11 @@ import numpy as np
 import torch
 
 from neus_l0.bench.sample_distance import SurfaceDistance, object_rays
-from neus_l0.config import RenderConfig
+from neus_l0.bounds.hull import hull_from_scene
+from neus_l0.bounds.spans import ray_bounds
+from neus_l0.config.schema import RenderConfig
 from neus_l0.data.scene import load_scene
-from neus_l0.hull import hull_from_scene
-from neus_l0.rendering import coarse_z_vals, ray_bounds
+from neus_l0.render.volume import coarse_z_vals
 
 
 def measure(root: str, rays: int, samples: int, fraction: float, resolution: int,

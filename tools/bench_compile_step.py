@@ -21,9 +21,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from test_train import sphere_scene  # noqa: E402
 
-from neus_l0.compile_step import CompiledStep  # noqa: E402
-from neus_l0.config import load_config  # noqa: E402
-from neus_l0.train import StepSetup, make_model, make_optimizer, render_and_loss, train_step  # noqa: E402,E501
+from neus_l0.config.load import load_config  # noqa: E402
+from neus_l0.fields.model import make_model  # noqa: E402
+from neus_l0.train.compile import CompiledStep  # noqa: E402
+from neus_l0.train.step import StepSetup, make_optimizer, render_and_loss, train_step  # noqa: E402
 
 
 def main() -> None:

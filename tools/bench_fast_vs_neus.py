@@ -110,7 +110,7 @@ def _check_args(args: argparse.Namespace) -> None:
 
 def build_specs(args: argparse.Namespace, out: Path) -> list[RunSpec]:
     """One `RunSpec` per (scene, arm), fast arm then NeuS arm per scene."""
-    from neus_l0.config import load_config, to_dict
+    from neus_l0.config.load import load_config, to_dict
 
     arm_cfg = {}
     for arm in ARMS:

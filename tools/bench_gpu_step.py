@@ -11,7 +11,7 @@ folder), then per (rays, mode): the model and optimiser of the config, ``--warm`
 steps (compilation included for ``compiled``, whose compile time is printed), ``--steps``
 timed steps (it/s after `torch.cuda.synchronize`), and one profiled step (torch.profiler):
 the number of device kernels launched and the device time over the step's wall time.
-``compiled`` sets ``train.compile=true`` (CUDA graphs first, see `neus_l0.compile_step`).
+``compiled`` sets ``train.compile=true`` (CUDA graphs first, see `neus_l0.train.compile`).
 Prints a Markdown table for docs/BENCHMARKS.md. The time to reach a fixed Chamfer is measured
 by `tools/bench_fast_vs_neus.py` (Chamfer against wall-clock from snapshot checkpoints).
 """
@@ -27,8 +27,9 @@ from pathlib import Path
 import torch
 from demo_scene import small_demo_scene
 
-from neus_l0.config import load_config
-from neus_l0.train import build_loop, train_step
+from neus_l0.config.load import load_config
+from neus_l0.train.loop import build_loop
+from neus_l0.train.step import train_step
 
 
 def _sync(device: torch.device) -> None:

@@ -24,10 +24,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from neus_l0.bounds.hull import DEFAULT_MARGIN_PX, carve_hull, hull_from_scene
 from neus_l0.data.rays import random_rays
 from neus_l0.data.scene import load_scene
 from neus_l0.evaluation.io import load_points
-from neus_l0.hull import DEFAULT_MARGIN_PX, carve_hull, hull_from_scene
 
 
 def erode(masks: torch.Tensor, px: int) -> torch.Tensor:

@@ -1,4 +1,4 @@
-"""The SfM-point box (`neus_l0.point_bound`) against the sphere, on `neus-l0 colmap` scenes.
+"""The SfM-point box (`neus_l0.bounds.points`) against the sphere, on `neus-l0 colmap` scenes.
 
 Usage:
     python tools/bench_point_bound.py TRUE_DIR:COLMAP_DIR [...] [--margins 0 0.05 0.1 0.2]
@@ -25,13 +25,15 @@ import numpy as np
 import torch
 
 from neus_l0.bench.sample_distance import SurfaceDistance, object_rays
-from neus_l0.config import RenderConfig
+from neus_l0.bounds.hull import hull_from_scene
+from neus_l0.bounds.points import PointBound
+from neus_l0.bounds.spans import ray_bounds
+from neus_l0.config.schema import RenderConfig
+from neus_l0.data.points import POINTS_FILE, read_points
 from neus_l0.data.scene import load_scene
 from neus_l0.evaluation.io import load_mesh, load_points
-from neus_l0.hull import hull_from_scene
 from neus_l0.photos.compare import compare_to_truth
-from neus_l0.point_bound import POINTS_FILE, PointBound, read_points
-from neus_l0.rendering import coarse_z_vals, ray_bounds
+from neus_l0.render.volume import coarse_z_vals
 
 
 def truth_in_colmap_frame(true_dir: str, colmap_dir: str, scene) -> tuple:

@@ -25,7 +25,7 @@ import time
 
 import torch
 
-from neus_l0.sampling import sample_l0, sample_l0_sections, sample_neus_sections, sample_pdf  # noqa: E501
+from neus_l0.sampling.kernels import sample_l0, sample_l0_sections, sample_neus_sections, sample_pdf
 
 
 def make_rays(n_rays: int, n_points: int, device: str, dtype: torch.dtype,

@@ -23,9 +23,10 @@ import time
 import torch
 from demo_scene import small_demo_scene
 
-from neus_l0.config import load_config
-from neus_l0.samplers import build_sampler
-from neus_l0.train import StepSetup, make_model, make_optimizer, train_step
+from neus_l0.config.load import load_config
+from neus_l0.fields.model import make_model
+from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.step import StepSetup, make_optimizer, train_step
 
 
 def _arm(conf: str, sampler: str, overrides: list[str]):

@@ -8,7 +8,7 @@ Usage:
 Builds the built-in ``demo`` scene, trains the config (with ``model.sdf.gradient=autograd``)
 for ``--warm`` iterations so the measured state is not the initial sphere, copies that state
 into one model per method (`model.sdf.gradient`), and times ``--steps`` calls of
-`neus_l0.train.train_step` per method, interleaved over ``--rounds`` rounds (load on a shared
+`neus_l0.train.step.train_step` per method, interleaved over ``--rounds`` rounds (load on a shared
 machine hits every method alike). Prints per method the best round's it/s and its ratio to
 autograd, the aten ops of one step (`tools/count_ops.py`'s counter) and the mean loss of
 the timed steps (a sanity check).
@@ -27,8 +27,9 @@ import torch
 from count_ops import OpCounter
 from demo_scene import small_demo_scene
 
-from neus_l0.config import load_config
-from neus_l0.train import make_model, make_occupancy, make_optimizer, make_scaler, train_step
+from neus_l0.config.load import load_config
+from neus_l0.fields.model import make_model
+from neus_l0.train.step import make_occupancy, make_optimizer, make_scaler, train_step
 
 
 def main() -> None:

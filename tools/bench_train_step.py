@@ -39,12 +39,12 @@ import time
 import torch
 from demo_scene import small_demo_scene
 
-from neus_l0.compile_step import compiled_step
-from neus_l0.config import load_config
-from neus_l0.samplers import build_sampler
-from neus_l0.train import (
+from neus_l0.config.load import load_config
+from neus_l0.fields.model import make_model
+from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.compile import compiled_step
+from neus_l0.train.step import (
     StepSetup,
-    make_model,
     make_occupancy,
     make_optimizer,
     make_scaler,
@@ -164,7 +164,7 @@ def main() -> None:
             r["losses"].append(torch.stack(losses)[:, 0].mean().item())
     # Active rays and samples per active ray, on one batch per variant (outside the timing).
     from neus_l0.data.rays import random_rays
-    from neus_l0.rendering import render_rays
+    from neus_l0.render.volume import render_rays
 
     for r in runs.values():
         cfg = r["cfg"]

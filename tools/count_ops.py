@@ -7,7 +7,7 @@ Usage:
 
 Builds the built-in ``demo`` scene (small, `neus_l0.data.synthetic.make_scene`), the config's
 model and optimiser, runs ``--warm`` untimed steps (lazy state: Adam's moments, the first
-occupancy update), then runs ONE `neus_l0.train.train_step` under a `TorchDispatchMode` that
+occupancy update), then runs ONE `neus_l0.train.step.train_step` under a `TorchDispatchMode` that
 counts every aten op reaching the dispatcher below autograd: the ops a kernel launch (or a
 CPU kernel call) is made for, plus views and metadata ops, which cost host time too. The step
 is taken at ``--iteration`` (default: the last warm step + 1), so schedules that depend on
@@ -38,18 +38,12 @@ import torch
 from demo_scene import small_demo_scene
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from neus_l0.config import load_config
-from neus_l0.pixel_pool import reachable_pixels
-from neus_l0.samplers import build_sampler
-from neus_l0.train import (
-    StepSetup,
-    make_model,
-    make_occupancy,
-    make_optimizer,
-    make_scaler,
-    run_hull,
-    train_step,
-)
+from neus_l0.bounds.pixel_pool import reachable_pixels
+from neus_l0.config.load import load_config
+from neus_l0.fields.model import make_model
+from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.loop import run_hull
+from neus_l0.train.step import StepSetup, make_occupancy, make_optimizer, make_scaler, train_step
 
 #: "module file stem:function name" -> phase label, for `--phases`; nested matches join
 #: with "/" (outermost first).

@@ -35,11 +35,11 @@ def train_and_mesh(scene_dir: Path, run_dir: Path, conf: str, overrides: list[st
                    max_seconds: float, resolution: int) -> dict:
     """Train on `scene_dir` into `run_dir` and extract ``run_dir/mesh.ply`` (scene's world)."""
     from neus_l0.atomic import atomic_write_json
-    from neus_l0.checkpoint import load_trained_model
-    from neus_l0.config import load_config
+    from neus_l0.config.load import load_config
     from neus_l0.data.scene import load_scene
-    from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import train
+    from neus_l0.mesh.extract import export_mesh, extract_mesh
+    from neus_l0.run.checkpoints import load_trained_model
+    from neus_l0.train.loop import train
 
     done = run_dir / "chain_run.json"
     if done.is_file():
@@ -96,7 +96,7 @@ def icp_to_truth(mesh_path: Path, true_dir: Path) -> tuple[Path, dict]:
     import trimesh
     from scipy.spatial import cKDTree
 
-    from neus_l0.mesh import export_mesh
+    from neus_l0.mesh.extract import export_mesh
     from neus_l0.photos.align import rotation_angle_deg
 
     mesh = trimesh.load(mesh_path, force="mesh", process=False)
@@ -155,7 +155,7 @@ def main() -> None:
     from neus_l0.atomic import atomic_write_json
     from neus_l0.cli import main as cli_main
     from neus_l0.data.synthetic import make_scene
-    from neus_l0.mesh import export_mesh
+    from neus_l0.mesh.extract import export_mesh
     from neus_l0.photos.compare import compare_to_truth
 
     out = Path(args.out)

@@ -56,13 +56,13 @@ class RunSpec:
         name: run folder name, ``<scene>__<sampler>__<budget>s__seed<seed>``.
         scene: scene name (the results' ``scene`` column).
         scene_dir: absolute path of the scene folder.
-        sampler: up-sampling draw (`neus_l0.config.SAMPLERS`).
+        sampler: up-sampling draw (`neus_l0.config.schema.SAMPLERS`).
         budget_s: wall-clock training budget (``train.max_seconds``).
         seed: ``train.seed`` (network init and ray draws).
         out_dir: the sweep folder DIR (absolute); the run folder is ``DIR/runs/<name>``.
         conf: config name or path (what the user named; informative when `config` is set).
         overrides: the user's ``key=value`` overrides (before the run's own).
-        config: the resolved base config (`neus_l0.config.to_dict` of `conf` + `overrides`
+        config: the resolved base config (`neus_l0.config.load.to_dict` of `conf` + `overrides`
             + the bench's own settings), fixed by the sweep when it starts so that every run
             uses the same config even if the YAML file changes meanwhile; None: resolve
             `conf` and `overrides` in the run's process.
@@ -117,10 +117,10 @@ class RunSpec:
                 f"train.max_seconds={self.budget_s:g}"]
 
     def load_config(self):
-        """The run's `neus_l0.config.Config` (raises `ConfigError` for a bad one)."""
+        """The run's `neus_l0.config.schema.Config` (raises `ConfigError` for a bad one)."""
         import copy
 
-        from neus_l0.config import config_from_dict, load_config
+        from neus_l0.config.load import config_from_dict, load_config
 
         if self.config is None:
             return load_config(self.conf, self.run_overrides())
@@ -157,7 +157,8 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int, pixels: in
                  report=None) -> list[float]:
     """PSNR of the rendered held-out `views` against their images, on a bounded pixel grid.
 
-    Rendered as `neus_l0.train.validation_image` does (no jitter), on every s-th pixel with
+    Rendered as `neus_l0.train.validation.validation_image` does (no jitter), on every
+    s-th pixel with
     ``s = psnr_stride(H, W, cfg.train.val_downscale, pixels)``: at least the validation
     downscale, more where a view would have over `pixels` pixels. With masks, the error is
     averaged over foreground pixels only (the no-background model renders black where the
@@ -171,9 +172,9 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int, pixels: in
     """
     import torch
 
-    from neus_l0.rendering import render_image
-    from neus_l0.schedule import cos_anneal_ratio
-    from neus_l0.train import validation_views
+    from neus_l0.render.volume import render_image
+    from neus_l0.train.schedule import cos_anneal_ratio
+    from neus_l0.train.validation import validation_views
 
     ds = psnr_stride(scene.height, scene.width, cfg.train.val_downscale, pixels)
     step = f"held-out PSNR (1/{ds} of each axis)"
@@ -222,7 +223,7 @@ def warm_up_torch() -> None:
     """Pay torch's one-off lazy imports before the budget starts.
 
     The first `torch.optim.Adam` imports `torch._dynamo` (about 3 s on the 2-core dev
-    machine), which `neus_l0.train.train` would otherwise count against `train.max_seconds`.
+    machine), which `neus_l0.train.loop.train` would otherwise count against `train.max_seconds`.
     """
     import torch
 
@@ -254,7 +255,7 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
 
     Args:
         spec: the run (device, resolution).
-        snapshots: `neus_l0.train.TrainResult.snapshots`, ``(mark, iteration, checkpoint)``.
+        snapshots: `neus_l0.train.loop.TrainResult.snapshots`, ``(mark, iteration, checkpoint)``.
         final_iter: the final model's iteration (its snapshot is the final point).
         scale_mat: (4, 4) normalised -> world.
         elapsed: loop time (s) of each snapshot iteration (metrics.jsonl's ``elapsed``).
@@ -267,10 +268,10 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
     """
     import numpy as np
 
-    from neus_l0.checkpoint import load_trained_model
+    from neus_l0.bounds.hull import load_run_hull
     from neus_l0.errors import NeusL0Error
-    from neus_l0.hull import load_run_hull
-    from neus_l0.mesh import export_mesh, extract_mesh
+    from neus_l0.mesh.extract import export_mesh, extract_mesh
+    from neus_l0.run.checkpoints import load_trained_model
 
     points = []
     seen = set()
@@ -362,11 +363,11 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
 
     from neus_l0.bench.holdout import split_views, subset_scene
     from neus_l0.bench.sample_distance import SampleDistanceHook, SurfaceDistance
-    from neus_l0.checkpoint import load_trained_model
+    from neus_l0.bounds.hull import load_run_hull
     from neus_l0.data.scene import load_scene
-    from neus_l0.hull import load_run_hull
-    from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import train
+    from neus_l0.mesh.extract import export_mesh, extract_mesh
+    from neus_l0.run.checkpoints import load_trained_model
+    from neus_l0.train.loop import train
 
     if spec.threads:
         torch.set_num_threads(spec.threads)

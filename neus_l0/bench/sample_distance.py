@@ -2,7 +2,7 @@
 
 A fixed set of rays that hit the object (pixels well inside the training masks, drawn once
 from a seeded generator, so every sampler and seed sees the same rays) is rendered with
-`neus_l0.rendering.render_rays` without jitter; its ``z_fine`` (B, n_importance) are the
+`neus_l0.render.volume.render_rays` without jitter; its ``z_fine`` (B, n_importance) are the
 up-sampled positions along each ray in the normalised frame. They are mapped to world units
 with the scene's ``scale_mat`` and measured against the ground truth: the exact
 point-to-triangle distance to ``gt_mesh.ply`` (`neus_l0.evaluation.surface.MeshDistance`),
@@ -21,7 +21,7 @@ from torch import Tensor
 
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene
-from neus_l0.mesh import to_world
+from neus_l0.mesh.extract import to_world
 
 #: A mask value above which a pixel counts as surely on the object (soft after downscale).
 MASK_INSIDE = 0.99
@@ -114,7 +114,7 @@ class SampleDistanceHook:
     """Training hook logging ``sample_dist``: the mean world distance of the fine samples.
 
     Called as ``hook(iteration, model, scene, cfg) -> {"sample_dist": float}`` (see
-    `neus_l0.train.train`) at every log step; it measures only at geometrically spaced
+    `neus_l0.train.loop.train`) at every log step; it measures only at geometrically spaced
     iterations (the first call, then once the iteration has grown by the factor `growth`),
     since each measurement costs seconds of exact point-to-mesh distances and a run that
     measured at every log step spent longer measuring than training. Its time never counts
@@ -153,8 +153,8 @@ class SampleDistanceHook:
         return self._rays
 
     def __call__(self, iteration: int, model, scene: Scene, cfg, force: bool = False) -> dict:
-        from neus_l0.rendering import render_rays
-        from neus_l0.schedule import cos_anneal_ratio
+        from neus_l0.render.volume import render_rays
+        from neus_l0.train.schedule import cos_anneal_ratio
 
         if not force and not self.due(iteration):
             return {}

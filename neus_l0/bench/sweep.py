@@ -20,7 +20,7 @@ function of the iteration, not of the budget, so a run cut at budget B is exactl
 same schedule has got to after B seconds; a sampler that costs less per iteration does more
 iterations in the same budget, which is what the benchmark measures. Validation images are
 off and checkpoints are written only at the end (both would count against the budget); the
-sample-distance hook's time is not counted (`neus_l0.train.train`). A run that reaches
+sample-distance hook's time is not counted (`neus_l0.train.loop.train`). A run that reaches
 `train.iters` before its budget ends there (its `train_seconds` is below the budget).
 """
 
@@ -160,7 +160,7 @@ class SweepSpec:
     Attributes:
         out_dir: the sweep folder DIR (see the module docstring for its layout).
         scenes: built-in scene names or scene folders.
-        samplers: up-sampling draws (`neus_l0.config.SAMPLERS`).
+        samplers: up-sampling draws (`neus_l0.config.schema.SAMPLERS`).
         budgets: wall-clock training budgets in seconds.
         seeds: training seeds.
         conf: the base config (name or YAML path) shared by every run.
@@ -263,7 +263,7 @@ def run_sweep(spec: SweepSpec, *, progress: bool = True,
     Raises:
         NeusL0Error: bad scenes or config, or a sweep folder made with other settings.
     """
-    from neus_l0.config import load_config, to_dict
+    from neus_l0.config.load import load_config, to_dict
 
     out_dir = Path(spec.out_dir).resolve()
     out_dir.mkdir(parents=True, exist_ok=True)

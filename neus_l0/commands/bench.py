@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     missing = [f"--{k}" for k in ("scenes", "seconds", "out") if not getattr(args, k)]
     if missing:
         raise NeusL0Error(f"bench needs {', '.join(missing)} (or --plot-only DIR)")
-    from neus_l0.config import SAMPLERS
+    from neus_l0.config.schema import SAMPLERS
     from neus_l0.device import pick_device
 
     bad = [s for s in args.samplers if s not in SAMPLERS]

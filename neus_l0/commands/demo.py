@@ -82,15 +82,15 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from neus_l0.atomic import atomic_write_json
-    from neus_l0.checkpoint import latest_checkpoint, load_trained_model
+    from neus_l0.bounds.hull import load_run_hull
     from neus_l0.commands._paths import check_output_dir
-    from neus_l0.config import load_config
+    from neus_l0.config.load import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
     from neus_l0.device import pick_device
-    from neus_l0.hull import load_run_hull
-    from neus_l0.mesh import export_mesh, extract_mesh
-    from neus_l0.train import train
+    from neus_l0.mesh.extract import export_mesh, extract_mesh
+    from neus_l0.run.checkpoints import latest_checkpoint, load_trained_model
+    from neus_l0.train.loop import train
 
     out = check_output_dir(args.out, "--out")
     out.mkdir(parents=True, exist_ok=True)
@@ -174,7 +174,7 @@ def draw_comparison(scene_dir, mesh, path, score: dict | None):
     import trimesh
 
     from neus_l0.data.cameras import read_world_mats, scale_projection
-    from neus_l0.preview import side_by_side, splat_render
+    from neus_l0.mesh.preview import side_by_side, splat_render
 
     scene_dir = Path(scene_dir)
     images = sorted((scene_dir / "image").glob("*.png"))

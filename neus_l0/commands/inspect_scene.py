@@ -58,10 +58,10 @@ def format_summary(info: dict) -> str:
 
 def _hull(args: argparse.Namespace) -> dict:
     """Carve the scene's visual hull, write its mesh, return the report as a dict."""
+    from neus_l0.bounds.hull import DEFAULT_MARGIN_PX, DEFAULT_RESOLUTION, hull_from_scene
     from neus_l0.data.scene import load_scene
     from neus_l0.errors import NeusL0Error
-    from neus_l0.hull import DEFAULT_MARGIN_PX, DEFAULT_RESOLUTION, hull_from_scene
-    from neus_l0.mesh import export_mesh
+    from neus_l0.mesh.extract import export_mesh
 
     R = DEFAULT_RESOLUTION if args.hull_resolution is None else args.hull_resolution
     margin = DEFAULT_MARGIN_PX if args.hull_margin is None else args.hull_margin

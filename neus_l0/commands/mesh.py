@@ -53,9 +53,9 @@ def _check(args: argparse.Namespace):
 
     from neus_l0.commands._paths import check_output_file
     from neus_l0.errors import NeusL0Error
-    from neus_l0.mesh import SPARSE_ABOVE
-    from neus_l0.mesh_cleanup import CleanupOptions
-    from neus_l0.mesh_memory import plan_extraction
+    from neus_l0.mesh.cleanup import CleanupOptions
+    from neus_l0.mesh.extract import SPARSE_ABOVE
+    from neus_l0.mesh.memory import plan_extraction
 
     if args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
@@ -83,11 +83,11 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from neus_l0.checkpoint import load_trained_model
+    from neus_l0.bounds.hull import load_run_hull
     from neus_l0.device import pick_device
-    from neus_l0.hull import load_run_hull
-    from neus_l0.mesh import export_mesh, extract_mesh, from_world, vertex_colors
-    from neus_l0.mesh_cleanup import clean_up
+    from neus_l0.mesh.cleanup import clean_up
+    from neus_l0.mesh.extract import export_mesh, extract_mesh, from_world, vertex_colors
+    from neus_l0.run.checkpoints import load_trained_model
 
     out, method, options = _check(args)
     device = pick_device(args.device)
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         mesh = clean_up(mesh, options)
         print(f"clean-up: {n_before} -> {len(mesh.faces)} faces")
     if args.texture:
-        from neus_l0.texture import bake_texture, network_colors, write_textured_obj
+        from neus_l0.mesh.texture import bake_texture, network_colors, write_textured_obj
 
         t_tex = time.monotonic()
         tex = bake_texture(from_world(mesh.vertices, scale_mat), np.asarray(mesh.faces),

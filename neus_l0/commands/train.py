@@ -31,10 +31,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 def run(args: argparse.Namespace) -> int:
 
     from neus_l0.commands._paths import check_output_dir
-    from neus_l0.config import load_config
+    from neus_l0.config.load import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.device import pick_device
-    from neus_l0.train import train
+    from neus_l0.train.loop import train
 
     run_dir = check_output_dir(args.out, "--out")
     conf = run_dir / "config.yaml" if args.resume and (run_dir / "config.yaml").is_file() \

@@ -4,6 +4,6 @@
 - `neus_l0.data.rays`: `pixel_rays`, `image_rays`, `random_rays`.
 - `neus_l0.data.cameras`: projection decomposition, look-at, the DTU-like camera cap.
 - `neus_l0.data.shapes`: analytic SDFs, CSG and the built-in shapes.
-- `neus_l0.data.render`: the sphere-tracing renderer (textured, shaded, anti-aliased).
+- `neus_l0.data.raycast`: the sphere-tracing renderer (textured, shaded, anti-aliased).
 - `neus_l0.data.synthetic`: `make_scene`, which writes a NeuS-format folder + ground truth.
 """

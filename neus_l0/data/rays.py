@@ -40,22 +40,6 @@ def pixel_rays(intrinsics: torch.Tensor, c2w: torch.Tensor,
     return T[:, :3, 3], dirs
 
 
-def ray_matrices(intrinsics: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
-    """Per-view matrices A = R K^-1 that map a pixel [x, y, 1] to its ray's direction.
-
-    Computed in float64 (then cast back), once per scene: `rays_at` then needs one small
-    product per ray (`pixel_rays` solves K per ray, which the same ray needs ~15 ops for).
-
-    Args:
-        intrinsics: (V, 3, 3) upper-triangular K; c2w: (V, 4, 4).
-
-    Returns:
-        (V, 3, 3) in intrinsics' dtype; ``A @ [x, y, 1]`` is the (unnormalised) direction.
-    """
-    k_inv = torch.linalg.inv(intrinsics.double())
-    return (c2w[:, :3, :3].double() @ k_inv).to(intrinsics.dtype)
-
-
 def pixel_grid(height: int, width: int, device: torch.device | str = "cpu") -> torch.Tensor:
     """(H, W, 2) float32 pixel-centre coordinates (x, y) of an image."""
     ys, xs = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float32),

@@ -34,6 +34,22 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
 
 
+def ray_matrices(intrinsics: torch.Tensor, c2w: torch.Tensor) -> torch.Tensor:
+    """Per-view matrices A = R K^-1 that map a pixel [x, y, 1] to its ray's direction.
+
+    Computed in float64 (then cast back), once per scene: `rays_at` then needs one small
+    product per ray (`pixel_rays` solves K per ray, which the same ray needs ~15 ops for).
+
+    Args:
+        intrinsics: (V, 3, 3) upper-triangular K; c2w: (V, 4, 4).
+
+    Returns:
+        (V, 3, 3) in intrinsics' dtype; ``A @ [x, y, 1]`` is the (unnormalised) direction.
+    """
+    k_inv = torch.linalg.inv(intrinsics.double())
+    return (c2w[:, :3, :3].double() @ k_inv).to(intrinsics.dtype)
+
+
 @dataclasses.dataclass
 class Scene:
     """A loaded multi-view scene, everything on one device.
@@ -78,9 +94,8 @@ class Scene:
 
     @functools.cached_property
     def ray_matrices(self) -> torch.Tensor:
-        """(n_views, 3, 3) R K^-1 of each view (`neus_l0.data.rays.ray_matrices`), computed
-        on first use (a scene's cameras do not change after loading)."""
-        from neus_l0.data.rays import ray_matrices  # rays imports this module
+        """(n_views, 3, 3) R K^-1 of each view (`ray_matrices`), computed on first use (a
+        scene's cameras do not change after loading)."""
         return ray_matrices(self.intrinsics, self.c2w)
 
     @functools.cached_property

@@ -31,7 +31,7 @@ from neus_l0.data.cameras import (
     projection_matrix,
     sphere_scale_mat,
 )
-from neus_l0.data.render import SdfSurface, Style, render_views
+from neus_l0.data.raycast import SdfSurface, Style, render_views
 from neus_l0.data.shapes import (
     BUILTIN_SHAPES,
     BuiltinShape,

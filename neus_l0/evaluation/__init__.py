@@ -14,14 +14,3 @@ Modules (all pure functions on NumPy arrays, world units):
 
 `docs/EVALUATION.md` documents the protocol and the JSON that `neus-l0 eval` writes.
 """
-
-from neus_l0.evaluation.chamfer import ChamferResult, nearest_distances, truncated_mean
-from neus_l0.evaluation.pointcloud import sample_mesh, thin_points
-
-__all__ = [
-    "ChamferResult",
-    "nearest_distances",
-    "sample_mesh",
-    "thin_points",
-    "truncated_mean",
-]

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from neus_l0.config import BackgroundConfig
+from neus_l0.config.schema import BackgroundConfig
 from neus_l0.fields.encodings import build_encoding
 
 

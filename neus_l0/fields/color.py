@@ -6,7 +6,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn.utils.parametrizations import weight_norm
 
-from neus_l0.config import ColorConfig
+from neus_l0.config.schema import ColorConfig
 from neus_l0.fields.encodings import build_encoding
 
 

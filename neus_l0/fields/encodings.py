@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from neus_l0.config import EncodingConfig
+from neus_l0.config.schema import EncodingConfig
 
 
 class Encoding(nn.Module):
@@ -147,7 +147,7 @@ class HashGridEncoding(Encoding):
     ``(start_level, update_steps)``): with `start_level` < L,
     only the first ``start_level + steps // update_steps`` levels are active (the others
     output 0), where ``steps`` is a persistent counter of forward passes made in training
-    mode with gradients enabled (one per training iteration in `neus_l0.rendering`; the
+    mode with gradients enabled (one per training iteration in `neus_l0.render.volume`; the
     up-sampling passes run without gradients and validation in eval mode, so neither counts).
     The counter lives in the state dict, so checkpoints and resumes keep the schedule.
 

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.nn.utils.parametrizations import weight_norm
 
-from neus_l0.config import SDFConfig
+from neus_l0.config.schema import SDFConfig
 from neus_l0.errors import ConfigError
 from neus_l0.fields.encodings import HashGridEncoding, build_encoding
 from neus_l0.fields.linear import layer_weight_t, linear

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from neus_l0.config import VarianceConfig
+from neus_l0.config.schema import VarianceConfig
 
 
 class SingleVariance(nn.Module):

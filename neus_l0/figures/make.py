@@ -278,9 +278,9 @@ def ray_figure(out: Path, inp: FigureInputs, pit: str | None = None,
                log=print) -> list[FigureEntry]:
     """ray_weights.png: each run's first up-sampling round along a camera ray into the pit
     `pit` (default: the pit whose bottom a camera sees deepest); nothing without pits."""
-    from neus_l0.checkpoint import load_trained_model
     from neus_l0.data.cameras import camera_file
     from neus_l0.figures.ray_weights import find_pit_ray, plot_ray_weights, ray_profile
+    from neus_l0.run.checkpoints import load_trained_model
 
     runs, what = inp.runs, inp.what
     if not any(f["kind"] == "pit" for f in inp.features) and pit is None:

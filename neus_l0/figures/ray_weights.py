@@ -151,7 +151,7 @@ def exp_interpolation(t: torch.Tensor, w: torch.Tensor,
     Returns:
         x, pdf: (M-1) * per_interval positions and densities.
     """
-    from neus_l0.sampling import piece_mass
+    from neus_l0.sampling.kernels import piece_mass
 
     a, b = w[:-1], w[1:]  # (M-1,)
     D = t[1:] - t[:-1]
@@ -165,7 +165,7 @@ def exp_interpolation(t: torch.Tensor, w: torch.Tensor,
 def section_pieces_curve(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor, t_lo: torch.Tensor,
                          per_piece: int = CURVE_POINTS // 2
                          ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The exponential pieces of `neus_l0.sampling.l0_section_pieces`, normalised to mass 1.
+    """The exponential pieces of `neus_l0.sampling.kernels.l0_section_pieces`, normalised to mass 1.
 
     Args:
         a, b, d, t_lo: (1, K) piece start / end densities, lengths and starts.
@@ -174,7 +174,7 @@ def section_pieces_curve(a: torch.Tensor, b: torch.Tensor, d: torch.Tensor, t_lo
     Returns:
         x, pdf: K * per_piece positions and densities.
     """
-    from neus_l0.sampling import piece_mass
+    from neus_l0.sampling.kernels import piece_mass
 
     a, b, d, t_lo = a[0], b[0], d[0], t_lo[0]  # (K,)
     mass = (piece_mass(a, b, "exp") * d).sum().clamp_min(1e-300)
@@ -194,10 +194,11 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         scale_mat: (4, 4) normalised -> world (uniform scale).
         sampler: the sampler the run trained with (its all-round fine samples are drawn).
     """
+    from neus_l0.bounds.sphere import near_far_from_sphere
     from neus_l0.data.cameras import to_normalised, world_scale
-    from neus_l0.rendering import coarse_z_vals, near_far_from_sphere, render_rays
-    from neus_l0.samplers import build_sampler, upsample_section_weights
-    from neus_l0.sampling import l0_section_pieces, maxblur
+    from neus_l0.render.volume import coarse_z_vals, render_rays
+    from neus_l0.sampling.kernels import l0_section_pieces, maxblur
+    from neus_l0.sampling.upsample import build_sampler, upsample_section_weights
 
     r, sc = cfg.render, cfg.sampler
     s = world_scale(scale_mat)  # world units per normalised unit along the ray

@@ -22,9 +22,9 @@ import numpy as np
 
 from neus_l0.atomic import atomic_write, atomic_write_png, atomic_write_text
 from neus_l0.data.cameras import projection_matrix, sphere_scale_mat
+from neus_l0.data.points import POINTS_FILE, write_points
 from neus_l0.errors import NeusL0Error
 from neus_l0.photos.sparse_io import SparseModel
-from neus_l0.point_bound import POINTS_FILE, write_points
 
 #: COLMAP models without distortion parameters (copied without resampling).
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
@@ -174,7 +174,7 @@ def export_scene(out: str | Path, model: SparseModel, photo_dir: str | Path,
     Writes ``image/NNN.png``, ``mask/NNN.png`` (3-channel 0/255, when `masks` is given),
     ``cameras_sphere.npz``, ``sources.txt`` (one source photo per line, view order) and
     ``sparse_points.npz`` (the SfM points in world units and their track lengths, for
-    `neus_l0.point_bound`).
+    `neus_l0.bounds.points`).
 
     Args:
         out: output folder.

@@ -1,7 +1,7 @@
 """The oracle sampling study: NeuS's up-sampling on analytic SDFs, every sampler, exactly.
 
 Training noise hides what a sampler buys, so this study takes the sampler out of training:
-the SDF is known, the up-sampling (`neus_l0.samplers.up_sample`, NeuS's fixed sharpness
+the SDF is known, the up-sampling (`neus_l0.sampling.upsample.up_sample`, NeuS's fixed sharpness
 ``inv_s = base * 2^i``) runs on it as it would on a converged network, and each sampler's fine
 samples are scored against the exact first hit along the ray.
 
@@ -35,10 +35,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neus_l0.config import SamplerConfig
+from neus_l0.bounds.sphere import near_far_from_sphere
+from neus_l0.config.schema import SamplerConfig
 from neus_l0.data import shapes as sh
-from neus_l0.rendering import coarse_z_vals, near_far_from_sphere
-from neus_l0.samplers import build_sampler, up_sample
+from neus_l0.render.volume import coarse_z_vals
+from neus_l0.sampling.upsample import build_sampler, up_sample
 
 #: Distances (normalised units) at which a fine sample counts as near the first hit.
 EPS = (0.001, 0.003, 0.01, 0.03)

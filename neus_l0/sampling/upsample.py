@@ -4,7 +4,7 @@ NeuS refines the coarse samples of a ray in rounds: at a fixed sharpness ``inv_s
 2^round`` it turns the SDF at the current samples into weights of the sections
 ``[z_j, z_{j+1}]`` (`upsample_section_weights`, a `Sections`), draws new samples from them,
 and merges. The draw is a `Sampler`, chosen by name from one registry (`SAMPLERS`) and built
-once from a `neus_l0.config.SamplerConfig` (`build_sampler`):
+once from a `neus_l0.config.schema.SamplerConfig` (`build_sampler`):
 
 * ``hvs``: NeuS's own piecewise-constant inverse CDF of the section weights (`sample_pdf`);
 * ``l0``, ``l0-inverse``, ``l0-linear``: the L0-Sampler (`sample_l0`) with exponential /
@@ -15,7 +15,8 @@ once from a `neus_l0.config.SamplerConfig` (`build_sampler`):
 
 `up_sample` runs the rounds with any SDF function, so the same code serves training (the SDF
 network) and the oracle study (analytic SDFs, `neus_l0.study.sampling`). The module is a leaf
-above `sampling.py`: it knows no networks and no configs beyond `SamplerConfig`'s fields.
+above `neus_l0.sampling.kernels`: it knows no networks and no configs beyond
+`SamplerConfig`'s fields.
 
 Shapes: B rays, N samples per ray (sorted), n samples drawn per round.
 """
@@ -25,13 +26,14 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neus_l0.sampling import (
+from neus_l0.config.schema import MASSES, PAD_MODES, PLACEMENTS, SAMPLERS, SamplerConfig
+from neus_l0.sampling.kernels import (
     quantiles,
     sample_l0,
     sample_l0_sections,
@@ -39,25 +41,6 @@ from neus_l0.sampling import (
     sample_pdf,
     sanitize_weights,
 )
-
-if TYPE_CHECKING:  # config imports this module's registry; no cycle at run time
-    from neus_l0.config import SamplerConfig
-
-__all__ = [
-    "HVSSampler", "L0Sampler", "L0_KINDS", "MASSES", "NeuSExactSampler", "PAD_MODES", "PLACEMENTS",
-    "SAMPLERS", "Sampler", "Sections", "build_sampler", "merge_sorted",
-    "section_to_point_weights", "transmittance", "up_sample", "upsample_section_weights",
-]
-
-#: The L0 sampler names and the interpolation kind each uses by default.
-L0_KINDS: dict[str, str] = {"l0": "exp", "l0-inverse": "inverse", "l0-linear": "linear"}
-#: How the maxblur pad of the L0 samplers is scaled (see `L0Sampler`).
-PAD_MODES = ("absolute", "relative", "none")
-#: Where section weights are placed as point weights (see `section_to_point_weights`).
-PLACEMENTS = ("midpoint", "endpoint")
-#: Where the L0 samplers' section shares come from (see `L0Sampler`).
-MASSES = ("interpolant", "sections")
-
 
 # ------------------------------------------------------------------------------------------
 # NeuS's up-sampling pieces (pure functions).
@@ -366,7 +349,7 @@ def warn_sampler_compile() -> None:
     """Warn (once per process) that ``sampler.compile`` no longer does anything.
 
     The draw compiled alone gave 1.05x on a CPU step and never ran on CUDA; the whole-step
-    compile (``train.compile=true``, `neus_l0.compile_step`) traces the draw with the rest
+    compile (``train.compile=true``, `neus_l0.train.compile`) traces the draw with the rest
     of the step in one graph, so the option is kept only so that old configs still load.
     """
     global _COMPILE_WARNED
@@ -390,8 +373,9 @@ REGISTRY: dict[str, Callable[[SamplerConfig], Sampler]] = {
     "l0-linear": _l0,
     "neus-exact": lambda cfg: NeuSExactSampler(base_inv_s=cfg.base_inv_s),
 }
-#: Sampler names, in the order `--help` and errors list them.
-SAMPLERS = tuple(REGISTRY)
+if tuple(REGISTRY) != SAMPLERS:  # the config's choice list and the registry are one list
+    raise ImportError(f"sampler registry {tuple(REGISTRY)} differs from the config's "
+                      f"choices {SAMPLERS} (neus_l0.config.schema.SAMPLERS)")
 
 
 def build_sampler(cfg: SamplerConfig | str) -> Sampler:
@@ -400,7 +384,7 @@ def build_sampler(cfg: SamplerConfig | str) -> Sampler:
     ``cfg.compile`` is deprecated and ignored (one warning; `warn_sampler_compile`).
     """
     if isinstance(cfg, str):
-        from neus_l0.config import SamplerConfig
+        from neus_l0.config.schema import SamplerConfig
 
         cfg = SamplerConfig(name=cfg)
     if cfg.name not in REGISTRY:

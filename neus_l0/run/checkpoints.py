@@ -30,8 +30,8 @@ from neus_l0.atomic import atomic_write
 from neus_l0.errors import NeusL0Error
 
 if TYPE_CHECKING:
-    from neus_l0.config import Config
-    from neus_l0.fields import NeuSModel
+    from neus_l0.config.schema import Config
+    from neus_l0.fields.model import NeuSModel
 
 CKPT_RE = re.compile(r"^ckpt_(\d+)\.pt$")
 
@@ -159,7 +159,7 @@ def restore_rng(generator: torch.Generator, state: dict) -> None:
 def restore_training(path: Path, state: dict, model: torch.nn.Module,
                      optimizer: torch.optim.Optimizer, generator: torch.Generator,
                      scaler: torch.amp.GradScaler, occupancy: Any | None = None) -> tuple[int, int]:
-    """Put a checkpoint's training state back (the resume of `neus_l0.train.train`).
+    """Put a checkpoint's training state back (the resume of `neus_l0.train.loop.train`).
 
     Args:
         path: the checkpoint (named in errors); state: its contents (`load_checkpoint`).
@@ -266,8 +266,8 @@ def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
     Raises:
         NeusL0Error: no checkpoint, or none usable.
     """
-    from neus_l0.config import config_from_dict
-    from neus_l0.fields import build_model
+    from neus_l0.config.load import config_from_dict
+    from neus_l0.fields.model import build_model
 
     if checkpoint:
         path = Path(checkpoint)

@@ -52,7 +52,7 @@ def mesh_faces(resolution: int, bound: float = 1.0, area: float = TYPICAL_AREA) 
 
 def extraction_bytes(method: str, resolution: int, block: int = 8, bound: float = 1.0,
                      area: float = TYPICAL_AREA, chunk: int = 2**18) -> int:
-    """Estimated peak host memory of `neus_l0.mesh.extract_mesh` (see the module docstring).
+    """Estimated peak host memory of `neus_l0.mesh.extract.extract_mesh` (see the module docstring).
 
     Args:
         method: "dense" or "sparse".

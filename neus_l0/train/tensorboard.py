@@ -62,7 +62,7 @@ class TensorBoardLogger:
         """An RGB image at `step`.
 
         Args:
-            rgb_uint8_hwc: (H, W, 3) uint8, e.g. `neus_l0.train.validation_image`'s.
+            rgb_uint8_hwc: (H, W, 3) uint8, e.g. `neus_l0.train.validation.validation_image`'s.
 
         Raises:
             ValueError: another shape or dtype.

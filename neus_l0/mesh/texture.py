@@ -10,7 +10,7 @@ the nearest covered texel up to `dilate` texels away, so bilinear filtering and 
 not bleed the background into the charts' borders.
 
 `neus-l0 mesh RUN --texture --out m.obj` bakes the colour network with the view direction
-looking along the inward normal (``view = -normal``), as `neus_l0.mesh.vertex_colors`
+looking along the inward normal (``view = -normal``), as `neus_l0.mesh.extract.vertex_colors`
 does for vertex colours (`network_colors`).
 """
 
@@ -218,7 +218,7 @@ def _as_uint8(rgb: np.ndarray) -> np.ndarray:
 
 def network_colors(model, device="cpu") -> ColorFn:
     """The colour network as a `ColorFn` on normalised-frame points, view = -normal."""
-    from neus_l0.mesh import vertex_colors
+    from neus_l0.mesh.extract import vertex_colors
 
     def fn(points: np.ndarray) -> np.ndarray:
         return vertex_colors(model, points, device)[:, :3]

@@ -40,7 +40,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neus_l0.config import OccupancyConfig
+from neus_l0.config.schema import OccupancyConfig
 
 #: Points per SDF call of the grid update.
 UPDATE_CHUNK = 65536
@@ -211,7 +211,7 @@ class OccupancyGrid(torch.nn.Module):
 
     def ray_bounds(self, origins: Tensor, dirs: Tensor, near: Tensor,
                    far: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """`ray_spans` on this grid (the `neus_l0.rendering.RayBounds` protocol)."""
+        """`ray_spans` on this grid (the `neus_l0.bounds.spans.RayBounds` protocol)."""
         return ray_spans(self.occ_dilated, origins, dirs, near, far)
 
     def contains(self, points: Tensor) -> Tensor:

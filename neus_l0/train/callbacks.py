@@ -1,8 +1,8 @@
 """The training loop's bookkeeping as callbacks at named points (nerfstudio's idea).
 
-`neus_l0.train.train` runs a short loop: restore, step, log, validate / checkpoint, stop.
+`neus_l0.train.loop.train` runs a short loop: restore, step, log, validate / checkpoint, stop.
 Everything else it does is one of these callbacks, each called at a named point of the
-loop with the loop's shared state (`neus_l0.train.TrainLoop`):
+loop with the loop's shared state (`neus_l0.train.state.TrainLoop`):
 
 * ``on_start(loop)``: once, before the first step;
 * ``on_log(loop, metrics)``: every ``train.log_every`` steps (and at the last), with the
@@ -12,7 +12,7 @@ loop with the loop's shared state (`neus_l0.train.TrainLoop`):
 * ``on_end(loop)``: once, after the last step (also after a stop by time, `stop_at` or a
   signal), before the final checkpoint.
 
-The clock (`neus_l0.train.Clock`) counts training time; callbacks whose work must not count
+The clock (`neus_l0.train.state.Clock`) counts training time; callbacks whose work must not count
 (training hooks, snapshot checkpoints) run inside ``loop.clock.paused()``.
 """
 
@@ -23,14 +23,9 @@ import json
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-import torch
-
-from neus_l0.checkpoint import checkpoint_path
-
-if TYPE_CHECKING:
-    from neus_l0.train import TrainLoop
+from neus_l0.run.checkpoints import checkpoint_path
+from neus_l0.train.state import TrainLoop
 
 #: A training hook: ``hook(iteration, model, scene, cfg) -> {name: number}``.
 Hook = Callable[..., dict]
@@ -118,7 +113,7 @@ class Validation(TrainingCallback):
         every = loop.cfg.train.val_every
         if not step_check(loop.iteration, every):
             return
-        from neus_l0.validation import validation_image, write_png
+        from neus_l0.train.validation import validation_image, write_png
 
         view = (loop.iteration // every) % loop.scene.n_views
         with loop.evaluating():
@@ -202,12 +197,6 @@ def snapshot_checkpoints(metrics_path: Path) -> set[Path]:
     return found
 
 
-def synchronize(device: torch.device) -> None:
-    """Wait for the device's queued work (CUDA); nothing on the CPU."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 class TensorBoard(TrainingCallback):
     """TensorBoard events in the run folder (``tensorboard --logdir RUN``): the losses,
     s, PSNR, learning rate, samples per ray, iterations per second, validation images."""
@@ -218,7 +207,7 @@ class TensorBoard(TrainingCallback):
         self.logger = None
 
     def on_start(self, loop: TrainLoop) -> None:
-        from neus_l0.tensorboard_log import TensorBoardLogger
+        from neus_l0.train.tensorboard import TensorBoardLogger
 
         self.logger = TensorBoardLogger(loop.run_dir, purge_step=loop.iteration or None)
         _ = self.logger.writer  # import and open now: setup, not training time

@@ -10,12 +10,13 @@ import torch
 from torch import Tensor
 
 from neus_l0.atomic import atomic_write_png
-from neus_l0.config import Config
+from neus_l0.bounds.spans import RayBounds
+from neus_l0.config.schema import Config
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene
-from neus_l0.fields import NeuSModel
-from neus_l0.rendering import RayBounds, render_image
-from neus_l0.schedule import cos_anneal_ratio
+from neus_l0.fields.model import NeuSModel
+from neus_l0.render.volume import render_image
+from neus_l0.train.schedule import cos_anneal_ratio
 
 
 def validation_views(scene: Scene, view: int, downscale: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -37,7 +38,7 @@ def validation_image(model: NeuSModel, scene: Scene, cfg: Config, view: int, ite
     """Ground truth | rendered colour | normals (camera frame) of a downscaled view.
 
     Args:
-        occupancy, bounds: what narrows the rays (see `neus_l0.rendering.ray_bounds`).
+        occupancy, bounds: what narrows the rays (see `neus_l0.bounds.spans.ray_bounds`).
         sampler: the up-sampling draw (default: the config's).
 
     Returns:

@@ -1,10 +1,10 @@
 """`train.compile`: the training step's render and loss through `torch.compile`.
 
-What is compiled is `neus_l0.train.render_and_loss` (rendering, the up-sampling draw, the
+What is compiled is `neus_l0.train.step.render_and_loss` (rendering, the up-sampling draw, the
 networks with their SDF gradient, every loss term); AOT autograd compiles its backward
 with it, and the optimiser's update stays eager (fused Adam on CUDA). The step is written
 for it: fixed shapes, no host synchronisation, no generator inside (the random numbers
-are drawn before, `neus_l0.train.draw_step_inputs`), and the SDF gradient without double
+are drawn before, `neus_l0.train.step.draw_step_inputs`), and the SDF gradient without double
 backward (``model.sdf.gradient`` `analytic` or `finite-difference`; `autograd` cannot be
 compiled, since AOT autograd does not support ``create_graph``).
 

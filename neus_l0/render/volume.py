@@ -2,11 +2,11 @@
 
 The path of one batch: `ray_bounds` (NeuS's [mid - 1, mid + 1], or the unit sphere's chord
 narrowed by a visual hull and an occupancy grid), coarse samples in those bounds,
-NeuS's up-sampling rounds with the fine-sample draw of a `neus_l0.samplers.Sampler`
+NeuS's up-sampling rounds with the fine-sample draw of a `neus_l0.sampling.upsample.Sampler`
 (``hvs``, the L0 kinds, ``neus-exact``; how section weights become point weights is
 documented there), the SDF and colour networks at the section midpoints, NeuS's unbiased
 opacity and alpha compositing, optionally blended with the NeRF++ background. The result is
-a `RenderOutput`; the losses are computed from it in `neus_l0.losses`.
+a `RenderOutput`; the losses are computed from it in `neus_l0.train.losses`.
 
 Shapes: B rays, N samples per ray along the (sorted) positions `t`.
 """
@@ -15,36 +15,16 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Protocol
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neus_l0.config import RenderConfig, SamplerConfig
-from neus_l0.fields import NeuSModel, sdf_and_gradient
-from neus_l0.samplers import SAMPLERS, Sampler, build_sampler, transmittance, up_sample
-
-__all__ = ["SAMPLERS", "RenderOutput", "RenderNoise", "RayBounds", "render_rays",
-           "render_image", "ray_bounds", "transmittance"]
-
-# ------------------------------------------------------------------------------------------
-# Pure functions.
-
-
-def near_far_from_sphere(origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor]:
-    """NeuS's bounds: the chord of the unit sphere centred on the ray's closest point.
-
-    Args:
-        origins: (B, 3); dirs: (B, 3).
-
-    Returns:
-        near, far: (B, 1) with far - near = 2.
-    """
-    a = (dirs * dirs).sum(-1, keepdim=True)  # (B, 1)
-    b = 2.0 * (origins * dirs).sum(-1, keepdim=True)  # (B, 1)
-    mid = -0.5 * b / a
-    return mid - 1.0, mid + 1.0
+from neus_l0.bounds.spans import RayBounds, _ray_bounds, ray_bounds
+from neus_l0.config.schema import RenderConfig, SamplerConfig
+from neus_l0.fields.model import NeuSModel
+from neus_l0.fields.sdf import sdf_and_gradient
+from neus_l0.sampling.upsample import Sampler, build_sampler, transmittance, up_sample
 
 
 def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
@@ -159,10 +139,6 @@ def annealed_cos(true_cos: Tensor, cos_anneal_ratio: float | Tensor) -> Tensor:
     return torch.lerp(early, true_cos.clamp_max(0.0), cos_anneal_ratio)
 
 
-# ------------------------------------------------------------------------------------------
-# Rendering with the networks.
-
-
 def as_sampler(sampler: Sampler | SamplerConfig | str) -> Sampler:
     """A `Sampler` (built from a config or a name when not one already; build once per run
     where it matters: a compiled draw compiles at its first use)."""
@@ -189,105 +165,6 @@ def background_alpha_color(model: NeuSModel, origins: Tensor, dirs: Tensor, z: T
     sigma, rgb = sigma.float(), rgb.float()
     alpha = 1.0 - torch.exp(-sigma.reshape(B, M) * dists)
     return alpha, rgb.reshape(B, M, 3)
-
-
-def sphere_chord(origins: Tensor, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Where each ray is inside the unit sphere.
-
-    Args:
-        origins: (B, 3); dirs: (B, 3) unit.
-
-    Returns:
-        t_in, t_out: (B, 1) the chord's ends, clamped to t >= 0 (NeuS's near / far,
-        ``mid -+ 1``, for rays that miss); hits: (B,) bool, whether the ray meets the
-        sphere in front of its origin.
-    """
-    # the closest approach (NeuS's mid of `near_far_from_sphere`)
-    mid = -(origins * dirs).sum(-1, keepdim=True) / (dirs * dirs).sum(-1, keepdim=True)
-    closest = torch.addcmul(origins, mid, dirs)  # (B, 3)
-    half2 = 1.0 - (closest * closest).sum(-1, keepdim=True)  # (B, 1)
-    half = half2.clamp_min(0.0).sqrt()
-    t_out = mid + half
-    hits = (half2 > 0.0) & (t_out > 0.0)  # (B, 1)
-    t_in = torch.where(hits, (mid - half).clamp_min(0.0), mid - 1.0)
-    t_out = torch.where(hits, t_out, mid + 1.0)
-    return t_in, t_out, hits[:, 0]
-
-
-class RayBounds(Protocol):
-    """Something that narrows rays' [near, far] to where the surface can be.
-
-    `neus_l0.occupancy.OccupancyGrid` and `neus_l0.hull.VisualHull` are ones. Fixed shapes:
-    no boolean indexing, no host synchronisation.
-    """
-
-    def ray_bounds(self, origins: Tensor, dirs: Tensor, near: Tensor,
-                   far: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """origins, dirs (B, 3); near, far (B, 1) -> lo, hi (B, 1), hits (B,) bool."""
-        ...
-
-
-def ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-               bounds: Sequence[RayBounds] = ()) -> tuple[Tensor, Tensor, Tensor]:
-    """Where each ray's samples go, and whether it gets any.
-
-    Without culling (`cfg.cull_outside_sphere` off and no `bounds`): NeuS's [mid - 1,
-    mid + 1] for every ray. Otherwise the chord of the unit sphere, narrowed in turn by each
-    of `bounds`; a ray that misses the sphere or any of them is inactive.
-
-    Args:
-        origins, dirs: (B, 3) unit `dirs`.
-        cfg: `cull_outside_sphere`.
-        bounds: narrowing objects (visual hull, occupancy grid), applied in order.
-
-    Returns:
-        near, far: (B, 1) with far > near; active: (B,) bool.
-    """
-    return _ray_bounds(origins, dirs, cfg, bounds)[:3]
-
-
-def ray_spans(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-              bounds: Sequence[RayBounds] = ()) -> tuple[Tensor, Tensor]:
-    """What `render_rays` would compute of each ray's bounds, packed for reuse as its `span`.
-
-    For rays whose bounds never change (a pixel's ray under a visual hull), computed once.
-
-    Returns:
-        span: (B, 4) near, far, and where the ray enters and leaves the unit sphere;
-        active: (B,) bool (see `ray_bounds`).
-    """
-    near, far, active, entry, exit_ = _ray_bounds(origins, dirs, cfg, bounds)
-    return torch.cat([near, far, entry, exit_], dim=-1), active
-
-
-def _ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-                bounds: Sequence[RayBounds] = (), span: Tensor | None = None
-                ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """`ray_bounds`, and (B, 1) where each ray enters and leaves the unit sphere (its `near`
-    and `far` before `bounds` narrowed them; `near` and `far` themselves without culling).
-
-    `span` (B, 4) from `ray_spans` replaces the sphere and the static bounds it was made
-    with (its rays are active); `bounds` then narrows it further."""
-    if span is not None:
-        near, far, entry, exit_ = span[:, :, None].unbind(1)  # (B, 1) each
-        active = torch.ones(origins.shape[0], dtype=torch.bool, device=near.device)
-        for b in bounds:
-            near, far, hits = b.ray_bounds(origins, dirs, near, far)
-            active = active & hits
-        if bounds:
-            far = torch.maximum(far, near + 1e-6)
-        return near, far, active, entry, exit_
-    if not cfg.cull_outside_sphere and not bounds:
-        near, far = near_far_from_sphere(origins, dirs)
-        active = torch.ones(origins.shape[0], dtype=torch.bool, device=near.device)
-        return near, far, active, near, far
-    near, far, active = sphere_chord(origins, dirs)
-    entry, exit_ = near, far
-    for b in bounds:
-        near, far, hits = b.ray_bounds(origins, dirs, near, far)
-        active = active & hits
-    far = torch.maximum(far, near + 1e-6)  # a tangent ray still gets a proper interval
-    return near, far, active, entry, exit_
 
 
 @dataclasses.dataclass
@@ -447,7 +324,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         model: the networks; `model.background` is used when `cfg.n_outside > 0`.
         origins, dirs: (B, 3) in the normalised frame, unit `dirs`.
         cfg: sampling and compositing settings.
-        sampler: the up-sampling draw: a `neus_l0.samplers.Sampler`, or a `SamplerConfig`
+        sampler: the up-sampling draw: a `neus_l0.sampling.upsample.Sampler`, or a `SamplerConfig`
             or name to build one from (build it once and pass the object in loops).
         cos_anneal_ratio: NeuS's cos annealing (1: unbiased).
         perturb: jitter the coarse (and background) samples, drawing from `generator`.

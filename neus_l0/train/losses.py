@@ -9,10 +9,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neus_l0.config import TrainConfig
+from neus_l0.config.schema import TrainConfig
 
 if TYPE_CHECKING:
-    from neus_l0.rendering import RenderOutput
+    from neus_l0.render.volume import RenderOutput
 
 
 def color_l1(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
@@ -79,7 +79,7 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
     """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE.
 
     Args:
-        out: `neus_l0.rendering.render_rays` output.
+        out: `neus_l0.render.volume.render_rays` output.
         target_rgb: (B, 3); mask: (B, 1) binary (ones when masks are unused).
         cfg: `igr_weight`, `mask_weight`, `eikonal_fraction` (below 1: the Eikonal term
             over a random subset of the samples, drawn from `generator`).

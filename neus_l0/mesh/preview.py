@@ -104,8 +104,8 @@ def raster_render(mesh: trimesh.Trimesh, world_mat: np.ndarray, width: int,
 
     from neus_l0.data.cameras import decompose_projection
     from neus_l0.data.meshes import MeshSurface
+    from neus_l0.data.raycast import RayGrid
     from neus_l0.data.rays import pixel_grid, pixel_rays
-    from neus_l0.data.render import RayGrid
 
     shade = np.full((height, width), np.nan)
     depth = np.full((height, width), np.inf)

@@ -4,7 +4,7 @@ With culling on (`render.cull_outside_sphere`, a visual hull), a ray that misses
 sphere or the hull has zero opacity inside its bounds by construction: rendered, it costs
 network work and gives no gradient (its colour is the background constant, its mask term
 BCE(0, mask) a constant). So training draws its rays from the other pixels only, keeping
-every batch's shape fixed and every ray useful; `neus_l0.losses.neus_loss` scales the mask
+every batch's shape fixed and every ray useful; `neus_l0.train.losses.neus_loss` scales the mask
 term by the pool's fraction of all pixels, which keeps NeuS's expected gradient (the
 colour term is a mean over foreground rays, which all lie in the pool). With a background
 model every pixel counts, and there is no pool.
@@ -19,10 +19,10 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from neus_l0.config import RenderConfig
+from neus_l0.bounds.spans import RayBounds, ray_spans
+from neus_l0.config.schema import RenderConfig
 from neus_l0.data.rays import rays_at
 from neus_l0.data.scene import Scene
-from neus_l0.rendering import RayBounds, ray_spans
 
 #: Largest pool whose rays' spans are kept (16 bytes a pixel: 1 GiB); a bigger pool's
 #: steps compute their bounds themselves.
@@ -37,7 +37,7 @@ class PixelPool:
         pixels: (P,) int64 flat indices ``view * H * W + y * W + x``, on the scene's device.
         fraction: P over all pixels of the scene.
         spans: (P, 4) float32 each pixel's ray span (near, far, sphere entry, sphere exit;
-            `neus_l0.rendering.ray_spans`) under the static bounds the pool was made with,
+            `neus_l0.bounds.spans.ray_spans`) under the static bounds the pool was made with,
             or None (no static bounds, or more than `MAX_SPAN_PIXELS` pixels). The bounds
             are static and a pixel's ray is fixed, so a step looks them up instead of
             computing them.

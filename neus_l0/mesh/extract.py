@@ -33,7 +33,7 @@ from neus_l0.atomic import atomic_path
 from neus_l0.errors import NeusL0Error
 
 if TYPE_CHECKING:
-    from neus_l0.hull import VisualHull
+    from neus_l0.bounds.hull import VisualHull
 
 SdfFn = Callable[[Tensor], Tensor]
 """Maps points (P, 3) in the normalised frame to SDF values (P,) or (P, 1)."""
@@ -425,13 +425,13 @@ def vertex_colors(model, vertices: np.ndarray, device: str | torch.device = "cpu
     """Colours from the colour network, looking along the inward normal (view = -normal).
 
     Args:
-        model: a `neus_l0.fields.NeuSModel`.
+        model: a `neus_l0.fields.model.NeuSModel`.
         vertices: (V, 3) in the normalised frame.
 
     Returns:
         (V, 4) uint8 RGBA.
     """
-    from neus_l0.fields import sdf_and_gradient
+    from neus_l0.fields.sdf import sdf_and_gradient
 
     out = []
     for part in torch.from_numpy(vertices.astype(np.float32)).split(chunk):
@@ -453,7 +453,7 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
     """The trained SDF's zero level set in world units.
 
     Args:
-        model: a `neus_l0.fields.NeuSModel` (only `sdf`, and `color` when `colors`).
+        model: a `neus_l0.fields.model.NeuSModel` (only `sdf`, and `color` when `colors`).
         scale_mat: (4, 4) normalised -> world.
         resolution: grid samples per axis over [-bound, bound].
         clean: keep only the largest connected component.
@@ -462,7 +462,7 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
         method: "dense" (the whole grid), "sparse" (`sparse_marching_cubes`) or "auto"
             (sparse above `SPARSE_ABOVE` samples per axis).
         block, lipschitz: the sparse path's block size and block rule.
-        hull: optional `neus_l0.hull.VisualHull` (normalised frame): nothing is exported
+        hull: optional `neus_l0.bounds.hull.VisualHull` (normalised frame): nothing is exported
             outside ``hull.for_grid(step)`` (see `sparse_marching_cubes`; the dense path
             reads samples outside it as far outside too).
 

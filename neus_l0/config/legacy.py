@@ -1,0 +1,54 @@
+"""The keys old configs and checkpoints used, read into today's schema (the one place)."""
+
+from __future__ import annotations
+
+from neus_l0.config.schema import (
+    L0_KINDS,
+)
+
+#: Old `render.*` sampler keys and the `sampler.*` keys they now mean (`_legacy_sampler`).
+LEGACY_SAMPLER_KEYS: dict[str, str] = {
+    "point_weights": "placement",
+    "weights_as_density": "as_density",
+    "l0_pad": "pad",
+    "compile_sampler": "compile",
+}
+
+
+#: The fields of a sampler block dumped before `masses` existed (session 3's `SamplerConfig`).
+_DUMPED_SAMPLER_KEYS = frozenset({"name", "kind", "pad", "pad_mode", "blur", "placement",
+                                  "as_density", "base_inv_s"})
+
+
+def _legacy_sampler(data: dict) -> dict:
+    """Move the old `render.*` sampler keys (`LEGACY_SAMPLER_KEYS`) into the sampler block.
+
+    The one place where old configs and checkpoints are read: ``render.l0_pad`` becomes
+    ``sampler.pad`` and so on; a bare ``sampler: NAME`` becomes ``{name: NAME}``. Where both
+    spellings are given, the new ``sampler.*`` key wins. ``render.l0_pad`` also sets
+    ``blur: true`` and ``pad_mode: absolute`` (unless given), which is what the old code ran,
+    so old configs and checkpoints keep their meaning; so does a whole sampler block dumped
+    before ``masses`` existed (every field of that time, `_DUMPED_SAMPLER_KEYS`, and no
+    ``masses``: it gets ``masses: interpolant``). A hand-written block (``{name: hvs,
+    base_inv_s: 128}``) is not a dump and keeps the default.
+    """
+    stored = data.get("sampler")
+    if (isinstance(stored, dict) and _DUMPED_SAMPLER_KEYS <= stored.keys()
+            and "masses" not in stored):
+        # a whole block dumped before `masses` existed: those runs drew from the interpolant
+        data = {**data, "sampler": {**stored, "masses": "interpolant"}}
+    render = data.get("render")
+    if not isinstance(render, dict) or not any(k in render for k in LEGACY_SAMPLER_KEYS):
+        return data
+    sampler = data.get("sampler", {})
+    sampler = {"name": sampler} if isinstance(sampler, str) else dict(sampler or {})
+    render = dict(render)
+    for old, new in LEGACY_SAMPLER_KEYS.items():
+        if old in render:
+            sampler.setdefault(new, render.pop(old))
+            if old == "l0_pad":  # the old code always blurred, with an absolute pad
+                sampler.setdefault("blur", True)
+                sampler.setdefault("pad_mode", "absolute")
+    if sampler.get("name", "l0") in L0_KINDS:  # the old code drew from the interpolant
+        sampler.setdefault("masses", "interpolant")
+    return {**data, "render": render, "sampler": sampler}

@@ -1,0 +1,408 @@
+"""The config schema: one dataclass per component, each field documented where it is
+declared, and the choice lists the rest of the package checks names against.
+
+Every key is optional; the defaults are NeuS's `wmask` settings. Loading, overrides and
+type checks are in `neus_l0.config.load`, range checks in `neus_l0.config.checks`, the keys
+old runs used in `neus_l0.config.legacy`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+#: Sampler names, in the order `--help` and errors list them (the registry in
+#: `neus_l0.sampling.upsample` checks at import that it builds exactly these).
+SAMPLERS = ("hvs", "l0", "l0-inverse", "l0-linear", "neus-exact")
+#: The L0 sampler names and the interpolation kind each uses by default.
+L0_KINDS: dict[str, str] = {"l0": "exp", "l0-inverse": "inverse", "l0-linear": "linear"}
+#: How the maxblur pad of the L0 samplers is scaled (see `L0Sampler`).
+PAD_MODES = ("absolute", "relative", "none")
+#: Where section weights are placed as point weights (see `section_to_point_weights`).
+PLACEMENTS = ("midpoint", "endpoint")
+#: Where the L0 samplers' section shares come from (see `L0Sampler`).
+MASSES = ("interpolant", "sections")
+
+
+@dataclass
+class EncodingConfig:
+    """An input encoding (see `neus_l0.fields.encodings.build_encoding`)."""
+
+    kind: str = "frequency"
+    """Encoding kind: `frequency` (NeRF positional encoding), `identity` or `hashgrid`
+    (Instant-NGP multiresolution hash grid; 3-D inputs only, used for the SDF network)."""
+    n_freqs: int = 6
+    """Number of octaves 2^0 .. 2^(n_freqs-1) of the frequency encoding (0: input only).
+    For `hashgrid`: frequency bands added between the raw input and the grid features."""
+    include_input: bool = True
+    """Whether the raw input is concatenated in front of the sines and cosines (or of the
+    grid features)."""
+    n_levels: int = 16
+    """`hashgrid`: number of resolution levels."""
+    n_features: int = 2
+    """`hashgrid`: features per level."""
+    log2_hashmap_size: int = 19
+    """`hashgrid`: log2 of the entries of each hashed level's table."""
+    base_resolution: int = 16
+    """`hashgrid`: cells per axis of the coarsest level."""
+    per_level_scale: float = 0.0
+    """`hashgrid`: resolution growth factor between levels (0: derive it from
+    `finest_resolution`)."""
+    finest_resolution: int = 2048
+    """`hashgrid`: cells per axis of the finest level, when `per_level_scale` is 0."""
+    bound: float = 1.0
+    """`hashgrid`: the grid covers [-bound, bound]^3 (the unit sphere's box)."""
+    init_scale: float = 1e-4
+    """`hashgrid`: table entries start uniform in [-init_scale, init_scale]."""
+    lr_scale: float = 1.0
+    """`hashgrid`: the table learns at `train.lr * lr_scale` (with Adam)."""
+    start_level: int | None = None
+    """`hashgrid`: progressive levels: active levels at the start (None: all, always)."""
+    update_steps: int = 1000
+    """`hashgrid`: training iterations between activating one more level."""
+
+
+@dataclass
+class SDFConfig:
+    """NeuS's SDF network (IDR's MLP with a skip connection and geometric initialisation)."""
+
+    hidden: int = 256
+    """Width of the hidden layers."""
+    layers: int = 8
+    """Number of hidden layers."""
+    skip: list[int] = field(default_factory=lambda: [4])
+    """Indices of the linear layers whose input is re-concatenated with the encoded input."""
+    encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=6))
+    """Encoding of the 3-D point."""
+    feature_dim: int = 256
+    """Length of the feature vector handed to the colour network."""
+    geometric_init: bool = True
+    """Initialise the SDF to a sphere of radius `bias` (SAL / IDR geometric init)."""
+    bias: float = 0.5
+    """Radius of the initial sphere."""
+    scale: float = 1.0
+    """Input scale: the network sees `x * scale` and returns `sdf / scale`."""
+    softplus_beta: float = 100.0
+    """Sharpness of the softplus activation."""
+    weight_norm: bool = True
+    """Weight normalisation on every linear layer."""
+    gradient: str = "autograd"
+    """How the SDF's spatial gradient (the Eikonal term's and the colour network's normal)
+    is computed (`neus_l0.fields.sdf`): `autograd` (torch.autograd.grad; in training a
+    double backward), `analytic` (the hash grid's / frequency encoding's derivative in
+    closed form carried forward through the MLP: one ordinary backward, same values) or
+    `finite-difference` (central differences with one batched 7-point pass; the step is
+    half a cell of the hash grid's finest active level, or 1e-3 without a hash grid)."""
+
+
+@dataclass
+class ColorConfig:
+    """NeuS's colour (rendering) network."""
+
+    hidden: int = 256
+    """Width of the hidden layers."""
+    layers: int = 4
+    """Number of hidden layers."""
+    mode: str = "idr"
+    """Inputs: `idr` (point, view dir, normal, feature), `no_view_dir` or `no_normal`."""
+    view_encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=4))
+    """Encoding of the view direction."""
+    weight_norm: bool = True
+    """Weight normalisation on every linear layer."""
+
+
+@dataclass
+class VarianceConfig:
+    """NeuS's single learned variance: s = exp(10 * variance)."""
+
+    init: float = 0.3
+    """Initial value of `variance` (s starts at exp(3) ~ 20)."""
+
+
+@dataclass
+class BackgroundConfig:
+    """NeRF++ background model for the space outside the unit sphere (no-mask setting)."""
+
+    hidden: int = 256
+    """Width of the hidden layers."""
+    layers: int = 8
+    """Number of hidden layers."""
+    skip: list[int] = field(default_factory=lambda: [4])
+    """Layers after which the encoded input is re-concatenated."""
+    encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=10))
+    """Encoding of the inverse-sphere point (x/r, 1/r), 4-D."""
+    view_encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=4))
+    """Encoding of the view direction."""
+
+
+@dataclass
+class ModelConfig:
+    """All networks."""
+
+    sdf: SDFConfig = field(default_factory=SDFConfig)
+    """The SDF network."""
+    color: ColorConfig = field(default_factory=ColorConfig)
+    """The colour network."""
+    variance: VarianceConfig = field(default_factory=VarianceConfig)
+    """The single variance."""
+    background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    """The background model, built only when `render.n_outside > 0`."""
+
+
+@dataclass
+class OccupancyConfig:
+    """Occupancy grid that keeps coarse samples out of empty space (`neus_l0.bounds.occupancy`).
+
+    Off in `wmask` / `womask` (which reproduce NeuS). When on, rays that miss the unit
+    sphere or cross no occupied cell get zero opacity, and the coarse samples of the others
+    lie in the span [first occupied, last occupied] along the ray. Measured on the CPU
+    without masks (docs/BENCHMARKS.md, "Bounds without masks"): 32^3 updated every 128
+    steps costs under 1 % of a step, but batches keep their shape, so it saves no network
+    work, and it moved only 1.07x the coarse samples toward the surface; early in training
+    it left out a few % of the true surface (it follows the network's SDF)."""
+
+    enabled: bool = False
+    """Use the grid in training and rendering."""
+    resolution: int = 32
+    """Cells per axis over [-1, 1]^3 (a multiple of `block`). 32 (was 64): an update costs
+    a tenth, and early in training it left out less of the true surface (BENCHMARKS.md)."""
+    update_every: int = 128
+    """Training iterations between grid updates (the first at iteration `start`)."""
+    start: int = 0
+    """No update before this iteration: until then every cell is occupied (nothing is
+    emptied before the SDF has been trained a while)."""
+    margin: float = 1.5
+    """Slack on the 1-Lipschitz bound: a cell is occupied when |sdf(centre)| <=
+    margin * half-diagonal + widths / s."""
+    widths: float = 6.0
+    """Logistic widths 1 / s (s: the current sharpness) added to the bound."""
+    hold: int = 2
+    """Updates a cell stays occupied after it last passed the test."""
+    block: int = 4
+    """Cells per axis of the blocks tested first in an update (1: test every cell)."""
+    compact: bool = True
+    """Kept so that older configs load; it no longer changes anything: training keeps every
+    batch's shape (rays that cross nothing are masked, and rays are drawn from pixels that
+    can reach the surface, `neus_l0.bounds.pixel_pool`), and `render_image` always skips rays that
+    cross nothing."""
+
+
+@dataclass
+class HullConfig:
+    """The visual hull carved from the masks (`neus_l0.bounds.hull`): rays get samples only where
+    they cross it. Scenes without masks have none (nothing is carved where nothing is
+    known)."""
+
+    enabled: bool = True
+    """Carve and use the hull when the scene has masks (saved as ``RUN/hull.pt``, so a
+    resume and ``neus-l0 mesh`` use the same one)."""
+    resolution: int = 128
+    """Cells per axis over the unit sphere's box (128: 7-8 s on 49 views of 1600x1200)."""
+    margin_px: float = 2.0
+    """Mask dilation in pixels for mask and calibration error (1 px is the least that kept
+    every true surface point with masks eroded by 2 px; 2 leaves one to spare)."""
+
+
+@dataclass
+class PointBoundConfig:
+    """The oriented box around a `neus-l0 colmap` scene's SfM points (`neus_l0.bounds.points`),
+    for scenes without a visual hull. Off by default: on the synthetic scenes exported
+    through pycolmap a margin below 0.2 cut thin parts the SfM points miss, and at 0.2 the
+    box keeps 70-94 % of the sphere (docs/BENCHMARKS.md, "Bounds without masks")."""
+
+    enabled: bool = False
+    """Narrow the rays to the box when the scene folder holds ``sparse_points.npz`` and the
+    run has no visual hull."""
+    margin: float = 0.2
+    """Widening of every face of the points' box, as a fraction of its diagonal."""
+    min_views: int = 2
+    """Least number of views that see a point for it to count."""
+
+
+@dataclass
+class RenderConfig:
+    """Sampling along rays and compositing (NeuS's `neus_renderer` block)."""
+
+    n_samples: int = 64
+    """Coarse samples, uniform in [near, far] of the unit sphere."""
+    n_importance: int = 64
+    """Fine samples in total, drawn in `up_sample_steps` equal rounds."""
+    up_sample_steps: int = 4
+    """Rounds of up-sampling; round i uses the fixed inv_s = 64 * 2^i."""
+    n_outside: int = 0
+    """Samples of the background model outside the unit sphere (0: no background model)."""
+    perturb: bool = True
+    """Jitter the coarse samples (one random shift per ray) during training."""
+    white_background: bool = False
+    """Composite over white instead of black (no background model)."""
+    chunk: int = 1024
+    """Rays per chunk when rendering whole images (validation)."""
+    cull_outside_sphere: bool = False
+    """Rays that miss the unit sphere get no samples and no SDF work (zero opacity, or the
+    background model alone), and the coarse samples of the others lie on the sphere's chord
+    instead of NeuS's [mid - 1, mid + 1]. Implied by `occupancy.enabled`."""
+    occupancy: OccupancyConfig = field(default_factory=OccupancyConfig)
+    """The occupancy grid (off by default)."""
+    hull: HullConfig = field(default_factory=HullConfig)
+    """The visual hull (on when the scene has masks)."""
+    point_bound: PointBoundConfig = field(default_factory=PointBoundConfig)
+    """The SfM points' box of a colmap scene without a hull (off by default)."""
+
+
+@dataclass(eq=False)
+class SamplerConfig:
+    """The fine-sample draw of NeuS's up-sampling (`neus_l0.sampling.upsample.build_sampler`).
+
+    In YAML and on the command line a bare name stands for the block with that name and
+    the defaults (``sampler: l0``, ``sampler=hvs``); ``sampler.pad=0.01`` sets one field. The
+    old keys ``render.point_weights``, ``render.weights_as_density``, ``render.l0_pad`` and
+    ``render.compile_sampler`` are still read, as ``sampler.placement``, ``as_density``, ``pad``
+    and ``compile`` (`LEGACY_SAMPLER_KEYS`). A `SamplerConfig` compares equal to its name and
+    prints as it, so code that expected the old string keeps working.
+    """
+
+    name: str = "l0"
+    """`hvs` (NeuS's piecewise constant), `l0` (L0 exponential, the default), `l0-inverse`,
+    `l0-linear` or `neus-exact` (the exact CDF of NeuS's opacity inside each section)."""
+    kind: str = ""
+    """L0 interpolation kind, `exp`, `inverse` or `linear` ("": the name's, e.g. `l0-linear`
+    -> `linear`); only the L0 samplers have one."""
+    pad: float = 0.0
+    """Pad of the L0 samplers' point weights (maxblur's, or added directly without blur; see
+    `pad_mode`). The authors' code uses 0.001, the paper 0.01. Default 0: in the oracle study
+    (docs/BENCHMARKS.md) every pad only moved fine samples away from the surface."""
+    pad_mode: str = "relative"
+    """How `pad` scales: `absolute` (added to the point weights as they are: NeuS's section
+    weights sum to at most 1, so its share of the draw grows as a ray's weight shrinks),
+    `relative` (times the ray's mean point weight: at most pad / (1 + pad) of the draw,
+    whatever the weights) or `none` (no pad)."""
+    blur: bool = False
+    """Apply the L0-Sampler's maxblur (paper eq. 10) to the point weights. Off by default:
+    in the oracle study maxblur, not the pad, is what put fewer fine samples near the surface
+    than `hvs` (0.68x within 0.01 at 16+16; without it 1.12x); `render.l0_pad` in an old
+    config or checkpoint turns it back on (with an absolute pad), as the old code ran."""
+    placement: str = "midpoint"
+    """How NeuS's section weights become point weights for the L0 samplers: `midpoint`
+    (weights at section midpoints) or `endpoint` (average of the two adjacent sections at
+    each sample). Was `render.point_weights`."""
+    as_density: bool = True
+    """Divide each section weight by its length (times the mean length) before the L0
+    interpolation, so that point values are densities even when sections are uneven. Was
+    `render.weights_as_density`."""
+    masses: str = "sections"
+    """Where the L0 samplers' section shares come from: `sections` (the default: each of
+    NeuS's sections keeps its own weight's share, as `hvs` draws, and the L0 interpolant of
+    the section densities only places the samples inside it:
+    `neus_l0.sampling.kernels.sample_l0_sections`; blur, pad, placement and as_density do not apply)
+    or `interpolant` (the paper's draw: the interpolant's own mass over each stretch decides
+    its share, after maxblur and pad). In the oracle study (docs/BENCHMARKS.md) `sections`
+    put more fine samples near the surface than `hvs` and than `interpolant`."""
+    base_inv_s: float = 64.0
+    """NeuS's fixed sharpness of the first up-sampling round; round i uses base * 2^i."""
+    compile: bool = False
+    """Deprecated, no effect (a one-line warning): `train.compile=true` compiles the whole
+    training step, the draw included. Kept so that configs and checkpoints that set it (or
+    the older `render.compile_sampler`) still load."""
+
+    def l0_kind(self) -> str:
+        """The L0 interpolation kind in effect (`kind`, else the name's)."""
+        return self.kind or L0_KINDS.get(self.name, "exp")
+
+    def __str__(self) -> str:
+        return self.name
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, str):
+            return self.name == other
+        if isinstance(other, SamplerConfig):
+            return dataclasses.astuple(self) == dataclasses.astuple(other)
+        return NotImplemented
+
+    def __hash__(self) -> int:  # equal to its name, so it hashes like it
+        return hash(self.name)
+
+
+@dataclass
+class TrainConfig:
+    """Optimisation, losses, logging and checkpoints."""
+
+    iters: int = 300000
+    """Total iterations (NeuS's `end_iter`); the cosine schedule ends here."""
+    batch_size: int = 512
+    """Rays per iteration (the starting number when `sample_budget` is set)."""
+    sample_budget: int = 0
+    """Foreground samples per iteration to aim for (0: off, every iteration draws
+    `batch_size` rays). Rays that miss the unit sphere (`render.cull_outside_sphere`) or the
+    occupancy grid get no samples, so a fixed batch evaluates fewer samples than the device
+    could; with a budget the number of rays is re-set at every log step (the loop's host
+    read-back) to ``rays * sample_budget / samples of that step``, kept within
+    [batch_size / 8, 8 * batch_size] (instant-nsr-pl's dynamic ray count). The current
+    number is saved in checkpoints (resume stays exact) and logged as ``rays``."""
+    lr: float = 5e-4
+    """Peak learning rate of Adam."""
+    lr_alpha: float = 0.05
+    """Final learning rate as a fraction of `lr` (cosine decay)."""
+    warm_up: int = 5000
+    """Iterations of linear learning-rate warm-up."""
+    anneal_end: int = 0
+    """Iteration where the cos-annealing ratio reaches 1 (0: 1 from the start)."""
+    igr_weight: float = 0.1
+    """Weight of the Eikonal loss."""
+    mask_weight: float = 0.1
+    """Weight of the mask BCE loss (0: masks unused)."""
+    seed: int = 0
+    """Seed of the network initialisation and of the ray / sample generator."""
+    log_every: int = 100
+    """Iterations between metric log lines (and the only host syncs of the loop)."""
+    val_every: int = 2500
+    """Iterations between validation renders (0: never)."""
+    val_downscale: int = 4
+    """Downscale factor of the validation renders."""
+    save_every: int = 10000
+    """Iterations between checkpoints (a final one is always written)."""
+    keep_checkpoints: int = 3
+    """How many of the newest checkpoints to keep."""
+    max_seconds: float = 0.0
+    """Wall-clock budget of the training loop (steps, logging, validation, checkpoints; not
+    the setup before it nor the time of training hooks): stop and checkpoint after this many
+    seconds (0: no budget)."""
+    amp: str = "off"
+    """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
+    scaler and fused Adam); ignored on the CPU."""
+    compile: bool = False
+    """Compile the training step's render and loss with `torch.compile`
+    (`neus_l0.train.compile`; needs `model.sdf.gradient` analytic or finite-difference;
+    CUDA graphs on CUDA where they work)."""
+    tensorboard: bool = True
+    """Write TensorBoard events into the run folder (`tensorboard --logdir RUN`)."""
+    eikonal_fraction: float = 1.0
+    """Fraction of the samples (drawn at random each step) that the Eikonal term averages
+    over; 1: all samples within radius 1.2 (NeuS)."""
+
+
+@dataclass
+class DataConfig:
+    """How the scene is loaded."""
+
+    downscale: int = 1
+    """Integer image downscale at load time."""
+
+
+@dataclass
+class Config:
+    """A complete run configuration."""
+
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    """The up-sampling draw and its settings; a bare name (`sampler: hvs`) sets the name."""
+    data: DataConfig = field(default_factory=DataConfig)
+    """Scene loading."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    """Networks."""
+    render: RenderConfig = field(default_factory=RenderConfig)
+    """Sampling and compositing."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Optimisation."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.sampler, str):
+            self.sampler = SamplerConfig(name=self.sampler)

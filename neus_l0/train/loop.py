@@ -1,0 +1,334 @@
+"""The NeuS training loop: Adam with warm-up and cosine decay, NeuS's losses, checkpoints.
+
+`train(scene, cfg, run_dir)` writes into ``run_dir``:
+
+* ``config.yaml``: the resolved config;
+* ``metrics.jsonl``: one JSON line every ``train.log_every`` iterations (means over them);
+* ``validation/NNNNNNN_vVVV.png``: ground truth | colour | normals of a downscaled view;
+* ``checkpoints/ckpt_NNNNNNN.pt``: atomic checkpoints (see `neus_l0.run.checkpoints`), among
+  them the snapshots that ``train(..., snapshots=[...])`` asks for at given loop times.
+
+Randomness: the networks are initialised from ``train.seed`` (without touching torch's
+global generator), and every random draw of the loop (ray batches, sample jitter) comes from
+one `torch.Generator` whose state is checkpointed, so ``resume=True`` continues with exactly
+the draws an uninterrupted run makes. The training step has no host synchronisation; the
+accumulated metrics are read back every ``train.log_every`` iterations only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from neus_l0.atomic import atomic_write_json, atomic_write_text
+from neus_l0.bounds.pixel_pool import reachable_pixels
+from neus_l0.bounds.points import PointBound
+from neus_l0.config.load import dump_config
+from neus_l0.config.schema import Config
+from neus_l0.data.scene import Scene
+from neus_l0.errors import ConfigError, NeusL0Error
+from neus_l0.fields.model import make_model
+from neus_l0.run.checkpoints import (
+    checkpoint_path,
+    latest_checkpoint,
+    load_newest_checkpoint,
+    restore_training,
+)
+from neus_l0.run.lock import RunLock
+from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.callbacks import (
+    Checkpoints,
+    Hook,
+    HookCallback,
+    MetricsFile,
+    ProgressBar,
+    Snapshots,
+    TensorBoard,
+    TrainingCallback,
+    Validation,
+)
+from neus_l0.train.compile import compiled_step
+from neus_l0.train.signals import StopOnSignal
+from neus_l0.train.state import Clock, TrainLoop
+from neus_l0.train.step import (
+    METRIC_NAMES,
+    make_occupancy,
+    make_optimizer,
+    make_scaler,
+    next_batch_size,
+    render_and_loss,
+    train_step,
+)
+
+
+@dataclasses.dataclass
+class TrainResult:
+    """What a call of `train` did.
+
+    Attributes:
+        run_dir: the run folder.
+        iteration: iterations done in total (including before a resume).
+        checkpoint: the last checkpoint written.
+        metrics: the last logged metrics (empty if none were logged).
+        seconds: wall-clock time of this call, less the time spent in hooks and in
+            writing snapshots.
+        stopped_early: whether `train.max_seconds` ended the run before `train.iters`.
+        snapshots: one ``(mark, iteration, checkpoint)`` per snapshot mark of this call, in
+            mark order (marks served by the same checkpoint repeat it).
+        signal: ``SIGTERM`` / ``SIGINT`` when one stopped the run (after finishing the step
+            and writing its checkpoint), else None.
+        exit_code: the shell's code for that signal (143, 130), else 0.
+    """
+
+    run_dir: Path
+    iteration: int
+    checkpoint: Path
+    metrics: dict
+    seconds: float
+    stopped_early: bool
+    snapshots: list[tuple[float, int, Path]] = dataclasses.field(default_factory=list)
+    signal: str | None = None
+    exit_code: int = 0
+
+
+def _check_scene(scene: Scene, cfg: Config) -> None:
+    if cfg.train.mask_weight > 0 and not scene.has_masks:
+        raise ConfigError(f"{scene.root}: train.mask_weight={cfg.train.mask_weight} but the "
+                          "scene has no mask/ folder (use --conf womask or train.mask_weight=0)")
+
+
+def _truncate_metrics(path: Path, iteration: int) -> None:
+    """Keep only the metric lines up to `iteration` (after a resume)."""
+    if not path.exists():
+        return
+    keep = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            if json.loads(line).get("iter", 0) <= iteration:
+                keep.append(line)
+        except json.JSONDecodeError:
+            continue
+    atomic_write_text(path, "".join(k + "\n" for k in keep))
+
+
+def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
+               resume: bool) -> TrainLoop:
+    """Networks, optimiser and generator, restored from the newest checkpoint on resume.
+
+    Raises:
+        NeusL0Error: nothing to resume, an existing run without `resume`, or a checkpoint
+            that does not fit.
+    """
+    if not resume and latest_checkpoint(run_dir) is not None:
+        raise NeusL0Error(f"{run_dir}: already holds checkpoints; pass --resume to continue "
+                          "or choose another --out")
+    found = load_newest_checkpoint(run_dir, map_location=device) if resume else None
+    if resume and found is None:
+        raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
+    ckpt, state = found if found is not None else (None, None)
+    _check_scene(scene, cfg)
+    scene = scene.to(device)
+    model = make_model(cfg, device)
+    loop = TrainLoop(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
+                     optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
+                     generator=torch.Generator(device=device),
+                     occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
+    loop.generator.manual_seed(cfg.train.seed)
+    loop.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
+    loop.setup.bounds = run_hull(scene, cfg, run_dir)
+    loop.setup.pool = reachable_pixels(scene, cfg.render, loop.setup.bounds,
+                                       background=model.background is not None)
+    loop.setup.compiled = compiled_step(render_and_loss, cfg, device)
+    if state is not None:
+        loop.iteration, rays = restore_training(ckpt, state, model, loop.optimizer,
+                                                loop.generator, loop.scaler, loop.occupancy)
+        loop.rays = rays or loop.rays
+        loop.last_checkpoint = ckpt
+    return loop
+
+
+def run_hull(scene: Scene, cfg: Config, run_dir: Path) -> tuple:
+    """The run's static bounds: its visual hull, or without one the SfM point box.
+
+    The hull exists only when the scene has masks and `render.hull.enabled` (views without
+    masks carve nothing): carved at the first start and saved as ``RUN/hull.pt``; a resume
+    loads that file. Each warning of the carving (a suspicious mask, named) is one line on
+    stderr. Without a hull, `render.point_bound.enabled` and a ``sparse_points.npz`` in the
+    scene folder (`neus-l0 colmap`) give the points' box (`neus_l0.bounds.points`); else ().
+    """
+    import sys
+
+    h = cfg.render.hull
+    if not (h.enabled and scene.has_masks):
+        p = cfg.render.point_bound
+        box = PointBound.for_scene(scene, p.margin, p.min_views) if p.enabled else None
+        if box is None:
+            return ()
+        print(f"neus-l0: {box.describe()}", file=sys.stderr, flush=True)
+        return (box,)
+    from neus_l0.bounds.hull import hull_for_run
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    hull = hull_for_run(scene, run_dir / "hull.pt", h.resolution, h.margin_px)
+    for line in (hull.report.warnings if hull.report is not None else []):
+        print(f"neus-l0: visual hull: {line}", file=sys.stderr, flush=True)
+    return (hull,)
+
+
+def _write_run_files(loop: TrainLoop) -> None:
+    """``config.yaml`` and ``run.json``; the metrics cut back to the resumed iteration."""
+    loop.run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(loop.run_dir / "config.yaml", dump_config(loop.cfg))
+    scene = loop.scene
+    atomic_write_json(loop.run_dir / "run.json", {
+        "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
+        "n_views": scene.n_views, "height": scene.height, "width": scene.width,
+    })
+    _truncate_metrics(loop.run_dir / "metrics.jsonl", loop.iteration)
+
+
+def read_metrics(loop: TrainLoop, acc: Tensor, steps: int, last: Tensor,
+                 window: tuple[float, int]) -> dict:
+    """The metrics line of a log step: means over the window's `steps` steps.
+
+    The loop's only host synchronisation. Also sets the next batch size (from this step's
+    samples alone, so that a resume stays exact).
+
+    Raises:
+        NeusL0Error: a non-finite mean (training diverged).
+    """
+    *values, step_samples = torch.cat([acc / steps, last[-1:]]).tolist()
+    now = loop.clock.elapsed()
+    metrics = dict(zip(METRIC_NAMES, values, strict=True))
+    metrics.update(rays=loop.rays)
+    loop.rays = next_batch_size(loop.rays, step_samples, loop.cfg)
+    metrics.update(iter=loop.iteration, lr=loop.optimizer.param_groups[0]["lr"],
+                   its_per_s=(loop.iteration - window[1]) / max(now - window[0], 1e-9),
+                   elapsed=now)
+    if not all(math.isfinite(v) for v in values):
+        raise NeusL0Error(f"{loop.run_dir}: training diverged at iteration {loop.iteration} "
+                          f"(loss {metrics['loss']}); resume from the last checkpoint with a "
+                          "lower train.lr")
+    return metrics
+
+
+def default_callbacks(cfg: Config, progress: bool, hooks: Sequence[Hook],
+                      snapshots: Sequence[float]) -> list[TrainingCallback]:
+    """The loop's own bookkeeping, in the order it runs at each point."""
+    board = [TensorBoard()] if cfg.train.tensorboard else []
+    sinks = [board[0].image] if board else []
+    return [HookCallback(hooks), MetricsFile(), *board, ProgressBar(progress),
+            Validation(sinks), Checkpoints(), Snapshots(snapshots)]
+
+
+def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.device = "cpu",
+          resume: bool = False, progress: bool = True,
+          stop_at: int | None = None, hooks: Sequence[Hook] = (),
+          snapshots: Sequence[float] = (),
+          callbacks: Sequence[TrainingCallback] = ()) -> TrainResult:
+    """Train NeuS on `scene` and write the run folder.
+
+    Args:
+        scene: the loaded scene (moved to `device`).
+        cfg: the run config. When resuming, pass the run's own config (``RUN/config.yaml``,
+            as `neus-l0 train --resume` does) for a result identical to an uninterrupted run;
+            changed settings such as `train.iters` or `train.lr` apply from the resumed
+            iteration on, and changed network sizes are refused.
+        run_dir: the output folder.
+        device: ``cpu`` or ``cuda``.
+        resume: continue from the newest checkpoint in ``run_dir``.
+        progress: show a tqdm bar.
+        stop_at: stop (and checkpoint) at this iteration as if interrupted, keeping the
+            schedule of `train.iters` (for tests and staged runs).
+        hooks: ``hook(iteration, model, scene, cfg) -> dict`` at each log step (model in
+            eval mode, no gradient); their numbers join that line of ``metrics.jsonl``, and
+            their time is not training time (`neus_l0.train.callbacks.HookCallback`).
+        snapshots: loop-time marks in seconds that get a checkpoint
+            (`neus_l0.train.callbacks.Snapshots`); the training itself is unchanged.
+        callbacks: more `neus_l0.train.callbacks.TrainingCallback`s, run after the loop's own.
+
+    Returns:
+        a `TrainResult`.
+
+    Raises:
+        NeusL0Error: an existing run without `resume`, a NaN checkpoint, divergence, or
+            a negative or non-finite snapshot mark.
+    """
+    try:
+        own = default_callbacks(cfg, progress, hooks, snapshots)
+    except ValueError as exc:
+        raise NeusL0Error(str(exc)) from None
+    if Path(run_dir).exists() and not Path(run_dir).is_dir():
+        raise NeusL0Error(f"{run_dir}: is a file, not a run folder (choose another --out)")
+    with RunLock(run_dir), StopOnSignal() as stop:
+        loop = build_loop(scene, cfg, Path(run_dir), torch.device(device), resume)
+        return _run_loop(loop, own + list(callbacks), stop_at, stop)
+
+
+def _run_loop(loop: TrainLoop, cbs: list[TrainingCallback], stop_at: int | None,
+              stop: StopOnSignal) -> TrainResult:
+    """The loop itself: restore is done; step, log, validate / checkpoint, stop."""
+    cfg = loop.cfg
+    _write_run_files(loop)
+    t = cfg.train
+    acc = torch.zeros(len(METRIC_NAMES), device=loop.device)
+    steps, stopped_early = 0, False
+    for cb in cbs:
+        cb.on_start(loop)
+    # The budget (train.max_seconds) counts the loop from here: steps, logs, validation
+    # renders and checkpoints, not the setup above.
+    loop.clock = Clock()
+    window = (0.0, loop.iteration)
+    loop.model.train()
+    while loop.iteration < t.iters:
+        # step
+        step = train_step(loop.model, loop.optimizer, loop.scene, cfg, loop.iteration,
+                          loop.generator, occupancy=loop.occupancy, scaler=loop.scaler,
+                          batch_size=loop.rays, setup=loop.setup)
+        acc += step
+        steps += 1
+        loop.iteration += 1
+        # log
+        if loop.iteration % t.log_every == 0 or loop.iteration == t.iters:
+            metrics = read_metrics(loop, acc, steps, step, window)
+            for cb in cbs:
+                cb.on_log(loop, metrics)
+            acc.zero_()
+            steps, window = 0, (loop.clock.elapsed(), loop.iteration)
+        # validate, checkpoint, snapshots
+        for cb in cbs:
+            cb.after_step(loop)
+        # stop
+        over_time = t.max_seconds and loop.clock.elapsed() > t.max_seconds
+        if (over_time or stop.requested or (stop_at is not None and loop.iteration >= stop_at)) \
+                and loop.iteration < t.iters:
+            stopped_early = True
+            break
+    for cb in cbs:
+        cb.on_end(loop)
+    if loop.last_checkpoint != checkpoint_path(loop.run_dir, loop.iteration):
+        loop.save()
+    snaps = next((cb.taken for cb in cbs if isinstance(cb, Snapshots)), [])
+    return TrainResult(loop.run_dir, loop.iteration, loop.last_checkpoint,
+                       _last_metrics(loop.run_dir), loop.clock.elapsed(), stopped_early, snaps,
+                       signal=stop.signal_name if stop.requested else None,
+                       exit_code=stop.exit_code)
+
+
+def _last_metrics(run_dir: Path) -> dict:
+    """The newest regular line of ``metrics.jsonl`` (empty when none was logged)."""
+    path = run_dir / "metrics.jsonl"
+    if not path.exists():
+        return {}
+    for line in reversed(path.read_text(encoding="utf-8").splitlines()):
+        m = json.loads(line)
+        if "loss" in m:
+            return m
+    return {}

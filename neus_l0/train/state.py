@@ -1,0 +1,122 @@
+"""The run's state that the loop and its callbacks share, and the training clock."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from neus_l0.bounds.occupancy import OccupancyGrid
+from neus_l0.config.load import to_dict
+from neus_l0.config.schema import Config
+from neus_l0.data.scene import Scene
+from neus_l0.device import synchronize
+from neus_l0.fields.model import NeuSModel
+from neus_l0.run.checkpoints import (
+    checkpoint_path,
+    prune_checkpoints,
+    rng_state,
+    save_checkpoint,
+)
+from neus_l0.train.step import (
+    StepSetup,
+)
+
+
+class Clock:
+    """Training time: the wall-clock since `start`, less the spans run in `paused()`."""
+
+    def __init__(self) -> None:
+        self.start = time.monotonic()
+        self._paused = 0.0
+
+    def elapsed(self) -> float:
+        """Seconds of training time so far."""
+        return time.monotonic() - self.start - self._paused
+
+    @contextlib.contextmanager
+    def paused(self) -> Iterator[None]:
+        """Time spent inside does not count."""
+        t0 = time.monotonic()
+        try:
+            yield
+        finally:
+            self._paused += time.monotonic() - t0
+
+
+@dataclasses.dataclass
+class TrainLoop:
+    """What the loop and its callbacks share (built by `train`)."""
+
+    cfg: Config
+    run_dir: Path
+    scene: Scene
+    model: NeuSModel
+    optimizer: torch.optim.Optimizer
+    scaler: torch.amp.GradScaler
+    generator: torch.Generator
+    occupancy: OccupancyGrid | None = None
+    setup: StepSetup = dataclasses.field(default_factory=StepSetup)
+    iteration: int = 0
+    rays: int = 0
+    clock: Clock = dataclasses.field(default_factory=Clock)
+    last_checkpoint: Path | None = None
+    protected: set[Path] = dataclasses.field(default_factory=set)
+    protect_snapshots: bool = False
+
+    @property
+    def device(self) -> torch.device:
+        return self.scene.device
+
+    @property
+    def bounds(self) -> tuple:
+        """Everything that narrows the rays: the setup's bounds, then the grid."""
+        return tuple(self.setup.bounds) + ((self.occupancy,) if self.occupancy is not None else ())
+
+    @contextlib.contextmanager
+    def evaluating(self) -> Iterator[None]:
+        """The model in eval mode without gradient, back in training mode after."""
+        self.model.eval()
+        try:
+            with torch.no_grad():
+                yield
+        finally:
+            self.model.train()
+
+    def wait_for_device(self) -> None:
+        """Let the queued steps finish (so that they count as training time)."""
+        synchronize(self.device)
+
+    def state(self) -> dict:
+        """The checkpoint of the current iteration (see `neus_l0.run.checkpoints`)."""
+        state = {
+            "iteration": self.iteration,
+            "batch_size": self.rays,
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "rng": rng_state(self.generator),
+            "config": to_dict(self.cfg),
+            "scale_mat": np.asarray(self.scene.scale_mat).tolist(),
+            "has_background": self.model.background is not None,
+        }
+        if self.occupancy is not None:
+            state["occupancy"] = self.occupancy.state_dict()
+        if self.scaler.is_enabled():
+            state["scaler"] = self.scaler.state_dict()
+        return state
+
+    def save(self) -> Path:
+        """Write the checkpoint of this iteration and prune the old ones."""
+        path = checkpoint_path(self.run_dir, self.iteration)
+        keep = self.cfg.train.keep_checkpoints
+        if not self.protect_snapshots:
+            self.last_checkpoint = save_checkpoint(path, self.state(), keep=keep)
+        else:
+            self.last_checkpoint = save_checkpoint(path, self.state(), keep=0)
+            prune_checkpoints(self.run_dir, keep, self.protected | {path})
+        return self.last_checkpoint

@@ -1,0 +1,257 @@
+"""One training step, written to compile: draw the inputs, render, loss, backward, update.
+
+Everything random is drawn before `render_and_loss` (`draw_step_inputs`), which takes
+tensors only and keeps every shape fixed, so `train.compile` compiles it whole; the step
+has no host synchronisation (its metrics stay on the device until a log step).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from neus_l0.bounds.occupancy import OccupancyGrid
+from neus_l0.bounds.pixel_pool import PixelPool
+from neus_l0.config.schema import Config
+from neus_l0.data.rays import random_picks, random_rays, rays_at
+from neus_l0.data.scene import Scene
+from neus_l0.fields.linear import clear_weight_cache
+from neus_l0.fields.model import NeuSModel
+from neus_l0.render.volume import RenderNoise, draw_noise, render_rays
+from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.losses import eikonal_indices, neus_loss
+from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
+
+METRIC_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "s", "samples")
+
+
+def make_optimizer(model: NeuSModel, cfg: Config) -> torch.optim.Adam:
+    """Adam over every network's parameters at the peak learning rate, fused.
+
+    The fused kernel updates every tensor in a few ops (the per-parameter loop dispatched
+    155 ops a step for demo's 17 tensors; `tools/count_ops.py`), and with ``train.amp =
+    fp16`` on CUDA it takes the gradient scaler's inf check on the device, so
+    `GradScaler.step` needs no host synchronisation.
+    """
+    return torch.optim.Adam(model.parameters(), lr=cfg.train.lr, fused=True)
+
+
+def amp_enabled(cfg: Config, device: torch.device | str) -> bool:
+    """Whether mixed precision applies: `train.amp` is not ``off`` and the device is CUDA."""
+    return cfg.train.amp != "off" and torch.device(device).type == "cuda"
+
+
+def autocast(cfg: Config, device: torch.device | str) -> contextlib.AbstractContextManager:
+    """`torch.autocast` for the networks per `train.amp` (a no-op on the CPU or when off)."""
+    if not amp_enabled(cfg, device):
+        return contextlib.nullcontext()
+    dtype = torch.bfloat16 if cfg.train.amp == "bf16" else torch.float16
+    return torch.autocast(device_type="cuda", dtype=dtype)
+
+
+def make_scaler(cfg: Config, device: torch.device | str) -> torch.amp.GradScaler:
+    """NeuS's loss scaler for ``train.amp = fp16`` on CUDA (disabled otherwise)."""
+    enabled = amp_enabled(cfg, device) and cfg.train.amp == "fp16"
+    return torch.amp.GradScaler("cuda", enabled=enabled)
+
+
+def make_occupancy(cfg: Config, device: torch.device | str) -> OccupancyGrid | None:
+    """The occupancy grid of `render.occupancy` (None when it is off)."""
+    if not cfg.render.occupancy.enabled:
+        return None
+    return OccupancyGrid(cfg.render.occupancy, device)
+
+
+def update_occupancy(grid: OccupancyGrid | None, model: NeuSModel, cfg: Config,
+                     iteration: int) -> None:
+    """Re-test the grid every `render.occupancy.update_every` iterations from
+    `render.occupancy.start` on (before it every cell stays occupied)."""
+    c = cfg.render.occupancy
+    if grid is not None and iteration >= c.start and (iteration - c.start) % c.update_every == 0:
+        grid.update(model.sdf.sdf, model.variance.inv_s())
+
+
+def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config, iteration: int) -> float:
+    """Apply NeuS's schedule for `iteration` and return the learning rate."""
+    t = cfg.train
+    lr = t.lr * lr_factor(iteration, t.warm_up, t.iters, t.lr_alpha)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    return lr
+
+
+def next_batch_size(rays: int, samples: float, cfg: Config) -> int:
+    """The ray count of the next iterations under `train.sample_budget`.
+
+    Args:
+        rays: the current ray count; samples: the foreground samples one step at that count
+            evaluated.
+
+    Returns:
+        ``round(rays * sample_budget / samples)`` within [batch_size / 8, 8 * batch_size]
+        (at least 1); `rays` unchanged when the budget is off.
+    """
+    t = cfg.train
+    if t.sample_budget <= 0:
+        return rays
+    lo, hi = max(1, t.batch_size // 8), 8 * t.batch_size
+    if not math.isfinite(samples) or samples <= 0:
+        return hi  # no ray got samples: draw as many as allowed
+    return int(min(max(round(rays * t.sample_budget / samples), lo), hi))
+
+
+@dataclasses.dataclass
+class StepInputs:
+    """What one step draws and reads before rendering: no generator, no Python number that
+    changes between steps, so a compiled `render_and_loss` sees the same kinds of inputs
+    every step.
+
+    Attributes:
+        origins, dirs: (B, 3) the rays; rgb: (B, 3) their pixels; mask: (B, 1) binary (ones
+            when masks are unused).
+        noise: the jitter's uniforms (None: no jitter).
+        eikonal_idx: (k,) the Eikonal subset's samples (None: all samples).
+        anneal: () NeuS's cos-anneal ratio at this iteration; the number 1.0 when
+            `train.anneal_end` is 0 (no annealing: constant over the run, so a compiled
+            step sees the same input every step, and the slope takes fewer ops).
+        mask_scale: the pixel pool's fraction (1: rays drawn from every pixel).
+        span: (B, 4) the rays' bounds under the run's static bounds, looked up in the pixel
+            pool (`PixelPool.spans`), or None (the step computes them).
+    """
+
+    origins: Tensor
+    dirs: Tensor
+    rgb: Tensor
+    mask: Tensor
+    noise: RenderNoise | None
+    eikonal_idx: Tensor | None
+    anneal: Tensor | float
+    mask_scale: float
+    span: Tensor | None = None
+
+
+def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
+                     generator: torch.Generator, pool: PixelPool | None) -> StepInputs:
+    """Draw one step's rays and random numbers (`StepInputs`), in a fixed order."""
+    span = None
+    if pool is None:
+        batch, mask_scale = random_rays(scene, n_rays, generator), 1.0
+    else:
+        pick = random_picks(pool.pixels.shape[0], n_rays, generator, scene.device)
+        batch, mask_scale = rays_at(scene, pool.pixels[pick]), pool.fraction
+        span = pool.spans[pick] if pool.spans is not None else None
+    r = cfg.render
+    noise = draw_noise(r, n_rays, generator, scene.device) if r.perturb else None
+    eik_idx = None
+    if cfg.train.eikonal_fraction < 1.0:
+        n_samples = n_rays * (r.n_samples + (r.n_importance if r.up_sample_steps else 0))
+        eik_idx = eikonal_indices(n_samples, cfg.train.eikonal_fraction, generator,
+                                  scene.device)
+    mask = batch["mask"]
+    mask = (mask > 0.5).float() if cfg.train.mask_weight > 0 else torch.ones_like(mask)
+    anneal = (1.0 if cfg.train.anneal_end <= 0 else
+              torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
+                           device=scene.device))
+    return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
+                      anneal, mask_scale, span)
+
+
+def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
+                    bounds: tuple) -> tuple[Tensor, Tensor]:
+    """Render a step's rays and compute its loss (what `train.compile` compiles).
+
+    Returns:
+        the loss () and the step's metrics (len(METRIC_NAMES),), detached.
+    """
+    with autocast(cfg, inputs.origins.device):
+        out = render_rays(model, inputs.origins, inputs.dirs, cfg.render, sampler,
+                          cos_anneal_ratio=inputs.anneal, create_graph=True, bounds=bounds,
+                          noise=inputs.noise, span=inputs.span)
+    losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
+                       eikonal_idx=inputs.eikonal_idx)
+    samples = out.active.sum() * out.t.shape[1]
+    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]  # () each
+    return losses["loss"], torch.stack(values).detach().float()  # stack promotes the count
+
+
+@dataclasses.dataclass
+class StepSetup:
+    """What a run builds once and every step uses (all optional).
+
+    Attributes:
+        bounds: what narrows the rays besides the sphere (a visual hull), before the grid.
+        sampler: the up-sampling draw (None: the config's).
+        pool: draw the rays from these pixels only (`neus_l0.bounds.pixel_pool`; None: from all).
+        compiled: a compiled `render_and_loss` (`neus_l0.train.compile`; None: eager).
+    """
+
+    bounds: tuple = ()
+    sampler: object = None
+    pool: PixelPool | None = None
+    compiled: Callable | None = None
+
+
+def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
+               iteration: int, generator: torch.Generator, *,
+               occupancy: OccupancyGrid | None = None,
+               scaler: torch.amp.GradScaler | None = None,
+               batch_size: int | None = None, setup: StepSetup | None = None) -> Tensor:
+    """One optimisation step on a random batch of rays.
+
+    Fixed shapes and no host synchronisation, except the occupancy grid's update (once per
+    `update_every` steps) when the grid is on.
+
+    Args:
+        model, optimizer: the networks and their optimiser.
+        scene: the scene, on the training device.
+        cfg: the run config.
+        iteration: the current iteration (sets the learning rate and the cos annealing).
+        generator: the source of the ray batch, the sample jitter and the Eikonal subset.
+        occupancy: the occupancy grid (updated here every `update_every` iterations).
+        scaler: the fp16 gradient scaler (`make_scaler`); None: none.
+        batch_size: rays of this step (None: `train.batch_size`).
+        setup: the run's hull bounds, sampler, pixel pool and compiled step (`StepSetup`).
+            None: no bounds, no pool, eager, and the config's sampler built for this call
+            (a loop should build a `StepSetup` once, so that the sampler and a
+            compiled step are built once).
+
+    Returns:
+        (len(METRIC_NAMES),) detached metrics of this step, in `METRIC_NAMES` order
+        (``samples``: foreground samples evaluated, active rays x samples per ray).
+    """
+    # learning rate, batch and random numbers, grid update
+    setup = setup or StepSetup()
+    set_learning_rate(optimizer, cfg, iteration)
+    inputs = draw_step_inputs(scene, cfg, iteration, batch_size or cfg.train.batch_size,
+                              generator, setup.pool)
+    update_occupancy(occupancy, model, cfg, iteration)
+    # the static bounds are in the looked-up spans when the pool kept them
+    static = tuple(setup.bounds) if inputs.span is None else ()
+    bounds = static + ((occupancy,) if occupancy is not None else ())
+    # render and loss
+    step_fn = setup.compiled or render_and_loss
+    sampler = build_sampler(cfg.sampler) if setup.sampler is None else setup.sampler
+    loss, metrics = step_fn(model, inputs, cfg, sampler, bounds)
+    # backward and update
+    _drop_grads(optimizer)
+    if scaler is not None and scaler.is_enabled():
+        scaler.scale(loss).backward()
+        scaler.step(optimizer)
+        scaler.update()
+    else:
+        loss.backward()
+        optimizer.step()
+    clear_weight_cache(model)  # the update may not move the version counters it keys on
+    return metrics
+
+
+def _drop_grads(optimizer: torch.optim.Optimizer) -> None:
+    """`optimizer.zero_grad(set_to_none=True)` without its profiler record (2 ops a step)."""
+    for group in optimizer.param_groups:
+        for p in group["params"]:
+            p.grad = None
