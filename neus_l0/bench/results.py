@@ -1,6 +1,6 @@
 """The results table of a sweep: its columns, rows, and the files that hold them.
 
-One row per run (see docs/BENCHMARKS.md, "Sampler sweep"): ``DIR/results.csv`` (header row,
+One row per run (see docs/benchmarks/sweeps.md): ``DIR/results.csv`` (header row,
 then one line per run; empty cells for missing numbers) and ``DIR/results.json`` (a JSON list
 of the same rows, missing numbers as null). Paths (``run_dir``, ``mesh``) are relative to DIR.
 Both files are rewritten atomically after every finished run, from the ``status.json`` files

@@ -8,7 +8,7 @@ further, and only that far: the box around those points, oriented along their pr
 axes and widened by a margin, clipped to the unit sphere. It is the same kind of statement
 as the sphere (the object lies where its points spread), not a carving of the space
 between points: SfM points are sparse on dark, blank and thin parts, so a voxel set
-dilated around them would cut the object (docs/BENCHMARKS.md, "Bounds without masks").
+dilated around them would cut the object (docs/BENCHMARKS.md, "Without masks").
 
 Why it is conservative: a point of the ray inside the box lies between the ray's entry and
 exit of the box (a box is convex), so ``[max(near, t_in), min(far, t_out)]`` holds every

@@ -156,7 +156,7 @@ class OccupancyConfig:
     Off in `wmask` / `womask` (which reproduce NeuS). When on, rays that miss the unit
     sphere or cross no occupied cell get zero opacity, and the coarse samples of the others
     lie in the span [first occupied, last occupied] along the ray. Measured on the CPU
-    without masks (docs/BENCHMARKS.md, "Bounds without masks"): 32^3 updated every 128
+    without masks (docs/BENCHMARKS.md, "Without masks"): 32^3 updated every 128
     steps costs under 1 % of a step, but batches keep their shape, so it saves no network
     work, and it moved only 1.07x the coarse samples toward the surface; early in training
     it left out a few % of the true surface (it follows the network's SDF)."""
@@ -208,7 +208,7 @@ class PointBoundConfig:
     """The oriented box around a `neus-l0 colmap` scene's SfM points (`neus_l0.bounds.points`),
     for scenes without a visual hull. Off by default: on the synthetic scenes exported
     through pycolmap a margin below 0.2 cut thin parts the SfM points miss, and at 0.2 the
-    box keeps 70-94 % of the sphere (docs/BENCHMARKS.md, "Bounds without masks")."""
+    box keeps 70-94 % of the sphere (docs/BENCHMARKS.md, "Without masks")."""
 
     enabled: bool = False
     """Narrow the rays to the box when the scene folder holds ``sparse_points.npz`` and the

@@ -15,7 +15,7 @@ The estimate (bytes) has two parts:
 - the mesh, assumed: marching cubes gives about `FACES_PER_AREA` triangles per grid step
   squared of surface (measured: 3.0 on spheres of radius 0.5 and 0.9 at 256^3 and
   512^3), and extraction, clean-up and export peak at about `BYTES_PER_FACE` bytes a face
-  (measured 780-1030 bytes a face, see docs/BENCHMARKS.md). The surface area is not known
+  (measured 784-1033 bytes a face, see docs/BENCHMARKS.md). The surface area is not known
   before the extraction; `TYPICAL_AREA` (a sphere of radius 1/sqrt(2) in the normalised
   frame, where the object's bounding sphere is the unit sphere) stands in for it.
 """
