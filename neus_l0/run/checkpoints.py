@@ -22,16 +22,15 @@ from __future__ import annotations
 import re
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
 from neus_l0.atomic import atomic_write
+from neus_l0.config.load import config_from_dict
+from neus_l0.config.schema import Config
 from neus_l0.errors import NeusL0Error
-
-if TYPE_CHECKING:
-    from neus_l0.config.schema import Config
-    from neus_l0.fields.model import NeuSModel
+from neus_l0.fields.model import NeuSModel, make_model
 
 CKPT_RE = re.compile(r"^ckpt_(\d+)\.pt$")
 
@@ -266,9 +265,6 @@ def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
     Raises:
         NeusL0Error: no checkpoint, or none usable.
     """
-    from neus_l0.config.load import config_from_dict
-    from neus_l0.fields.model import build_model
-
     if checkpoint:
         path = Path(checkpoint)
         state = load_checkpoint(path, map_location=device)
@@ -278,10 +274,7 @@ def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
             raise NeusL0Error(f"{run_dir}: no checkpoints/ckpt_*.pt (train first)")
         path, state = found
     cfg = config_from_dict(state["config"])
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(cfg.train.seed)
-        model = build_model(cfg.model, background=cfg.render.n_outside > 0)
-    model = model.to(device)
+    model = make_model(cfg, device)
     model.load_state_dict(state["model"])
     model.eval()
     info = {k: v for k, v in state.items() if k not in ("model", "optimizer", "rng")}
