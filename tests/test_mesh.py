@@ -5,6 +5,7 @@ import pytest
 import torch
 import trimesh
 
+from neus_l0.data.cameras import to_world
 from neus_l0.errors import NeusL0Error
 from neus_l0.mesh.extract import (
     clean_mesh,
@@ -12,7 +13,6 @@ from neus_l0.mesh.extract import (
     extract_mesh,
     marching_cubes,
     sdf_grid,
-    to_world,
 )
 
 SCALE = np.array([[2.5, 0.0, 0.0, 10.0],

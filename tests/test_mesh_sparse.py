@@ -10,6 +10,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from neus_l0.data.cameras import to_world
 from neus_l0.data.shapes import Box, CappedCone, Difference, Sphere, Union, builtin_shape
 from neus_l0.errors import NeusL0Error
 from neus_l0.mesh.extract import (
@@ -19,7 +20,6 @@ from neus_l0.mesh.extract import (
     marching_cubes,
     sdf_grid,
     sparse_marching_cubes,
-    to_world,
 )
 
 

@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from neus_l0.data.cameras import to_world
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene
-from neus_l0.mesh.extract import to_world
 
 #: A mask value above which a pixel counts as surely on the object (soft after downscale).
 MASK_INSIDE = 0.99

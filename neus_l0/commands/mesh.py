@@ -84,9 +84,10 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from neus_l0.bounds.hull import load_run_hull
+    from neus_l0.data.cameras import to_normalised
     from neus_l0.device import pick_device
     from neus_l0.mesh.cleanup import clean_up
-    from neus_l0.mesh.extract import export_mesh, extract_mesh, from_world, vertex_colors
+    from neus_l0.mesh.extract import export_mesh, extract_mesh, vertex_colors
     from neus_l0.run.checkpoints import load_trained_model
 
     out, method, options = _check(args)
@@ -108,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
         from neus_l0.mesh.texture import bake_texture, network_colors, write_textured_obj
 
         t_tex = time.monotonic()
-        tex = bake_texture(from_world(mesh.vertices, scale_mat), np.asarray(mesh.faces),
+        tex = bake_texture(to_normalised(mesh.vertices, scale_mat), np.asarray(mesh.faces),
                            network_colors(model, device), size=args.texture_size)
         tex.vertices = np.asarray(mesh.vertices, np.float64)  # world units
         paths = write_textured_obj(tex, out)
@@ -117,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
               f"{paths[1].name}, {paths[2].name}")
     else:
         if args.colors:
-            mesh.visual.vertex_colors = vertex_colors(model, from_world(mesh.vertices,
+            mesh.visual.vertex_colors = vertex_colors(model, to_normalised(mesh.vertices,
                                                                         scale_mat), device)
         export_mesh(mesh, out)
     print(f"{out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, world units "

@@ -30,6 +30,7 @@ import trimesh
 from torch import Tensor
 
 from neus_l0.atomic import atomic_path
+from neus_l0.data.cameras import to_world
 from neus_l0.errors import NeusL0Error
 
 if TYPE_CHECKING:
@@ -89,12 +90,6 @@ def sdf_grid(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
     """
     axis = torch.linspace(-bound, bound, int(resolution), device=device)
     return _sdf_on_axes(sdf_fn, axis, axis, axis, chunk)
-
-
-def to_world(vertices: np.ndarray, scale_mat: np.ndarray) -> np.ndarray:
-    """Map (V, 3) normalised-frame points to world units with the 4x4 `scale_mat`."""
-    S = np.asarray(scale_mat, dtype=np.float64)
-    return vertices @ S[:3, :3].T + S[:3, 3]
 
 
 def marching_cubes(volume: np.ndarray, bound: float = 1.0,
@@ -514,9 +509,3 @@ def export_mesh(mesh: trimesh.Trimesh, path: str | Path) -> Path:
     with atomic_path(path) as tmp:
         mesh.export(tmp, file_type=kind)
     return path
-
-
-def from_world(vertices: np.ndarray, scale_mat: np.ndarray) -> np.ndarray:
-    """Map (V, 3) world points back to the normalised frame (the inverse of `to_world`)."""
-    S = np.asarray(scale_mat, dtype=np.float64)
-    return np.linalg.solve(S[:3, :3], (np.asarray(vertices, np.float64) - S[:3, 3]).T).T
