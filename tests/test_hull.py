@@ -476,11 +476,11 @@ def test_inspect_hull_cli(tmp_path, demo_scene):
 
 
 def _ball_hull(R: int = 64, radius: float = 0.55) -> VisualHull:
-    from neus_l0.bounds import hull as H
+    from neus_l0.bounds.grid import cell_axis, dilate
 
-    c = H._cell_axis(R)
+    c = cell_axis(R)
     r2 = c[:, None, None] ** 2 + c[None, :, None] ** 2 + c[None, None, :] ** 2
-    return VisualHull(H._dilate(r2 <= radius ** 2))
+    return VisualHull(dilate(r2 <= radius ** 2))
 
 
 def _object_and_floater(p: torch.Tensor) -> torch.Tensor:

@@ -5,10 +5,9 @@ import math
 import pytest
 import torch
 
+from neus_l0.bounds.grid import cell_centres, dilate
 from neus_l0.bounds.occupancy import (
     OccupancyGrid,
-    cell_centres,
-    dilate,
     occupancy_threshold,
     occupied_cells,
     ray_spans,

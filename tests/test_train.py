@@ -370,7 +370,7 @@ def test_a_few_steps_with_the_grid_lower_the_loss(scene, tmp_path):
     occ = state["occupancy"]["occ"]
     assert occ.shape == (32, 32, 32) and 0 < occ.float().mean() < 1.0
     # the scene's sphere (radius 0.5) is kept: cells on its surface stay occupied
-    from neus_l0.bounds.occupancy import cell_centres
+    from neus_l0.bounds.grid import cell_centres
 
     r = cell_centres(32).norm(dim=-1)
     assert occ[(r - 0.5).abs() < 0.01].all()

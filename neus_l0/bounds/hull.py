@@ -62,6 +62,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from neus_l0.atomic import atomic_path
+from neus_l0.bounds.grid import (
+    cell_axis,
+    cell_centres,
+    dilate,
+    flat_index,
+    lookup,
+    occupied_span,
+)
 from neus_l0.errors import NeusL0Error
 
 DEFAULT_RESOLUTION = 128
@@ -199,28 +207,14 @@ class VisualHull:
         return cls.from_state_dict(state, device)
 
     # --- queries ------------------------------------------------------------------------
-    def _flat_index(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        """Flat cell index (clamped) and whether the point is inside the cube."""
-        R = self.resolution
-        q = torch.floor((points.float() + 1.0) * (R / 2.0))  # (..., 3) cell coordinates
-        inside = (q.amin(dim=-1) >= 0) & (q.amax(dim=-1) < R)
-        q = q.clamp(0, R - 1)
-        if R ** 3 <= 2 ** 24:  # exact in float32
-            flat = ((q[..., 0] * R + q[..., 1]) * R + q[..., 2]).long()
-        else:
-            q = q.long()
-            flat = (q[..., 0] * R + q[..., 1]) * R + q[..., 2]
-        return flat, inside
-
     def contains(self, points: Tensor) -> Tensor:
         """Whether points (..., 3) in the normalised frame lie in the hull: (...,) bool."""
-        flat, inside = self._flat_index(points.to(self.device))
-        return self.occupancy.reshape(-1)[flat] & inside
+        return lookup(self.occupancy, points.to(self.device))
 
     def fraction_of_sphere(self) -> float:
         """The fraction of the unit sphere's cells (centre inside the sphere) that are kept."""
         R = self.resolution
-        c = _cell_axis(R, self.device)
+        c = cell_axis(R, self.device)
         r2 = c[:, None, None] ** 2 + c[None, :, None] ** 2 + c[None, None, :] ** 2
         inside = r2 <= 1.0
         return float((self.occupancy & inside).sum()) / float(inside.sum())
@@ -251,23 +245,13 @@ class VisualHull:
         """
         t, pts, ok = _ray_points(origins, dirs, near, far, self.resolution)
         occ = self.contains(pts) & ok  # (B, n)
-        hits = occ.any(dim=-1)  # (B,)
         widen = self.cell / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)  # (B, 1)
-        first = torch.where(occ, t, torch.full_like(t, math.inf)).amin(dim=-1, keepdim=True)
-        last = torch.where(occ, t, torch.full_like(t, -math.inf)).amax(dim=-1, keepdim=True)
-        lo = torch.where(hits[:, None], torch.maximum(first - widen, near), near)
-        hi = torch.where(hits[:, None], torch.minimum(last + widen, far), far)
-        return lo, hi, hits
+        return occupied_span(t, occ, near, far, widen)
 
     # --- boxes (for meshing) ------------------------------------------------------------
     def dilated(self, cells: int) -> VisualHull:
         """This hull dilated by `cells` more cells (26-neighbourhood); report not kept."""
-        occ = self.occupancy
-        if cells > 0:
-            k = 2 * int(cells) + 1
-            occ = F.max_pool3d(occ[None, None].float(), k, stride=1,
-                               padding=int(cells))[0, 0] > 0
-        return VisualHull(occ, self.margin_px, None)
+        return VisualHull(dilate(self.occupancy, cells), self.margin_px, None)
 
     def for_grid(self, step: float) -> VisualHull:
         """The region a grid of spacing `step` may be restricted to without changing its
@@ -360,11 +344,6 @@ def _ray_points(origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
     return t, pts, (disc >= 0) & (hi >= lo)
 
 
-def _cell_axis(R: int, device: torch.device | str = "cpu") -> Tensor:
-    """(R,) cell-centre coordinates of a grid over [-1, 1]."""
-    return -1.0 + (2.0 / R) * (torch.arange(R, device=device, dtype=torch.float32) + 0.5)
-
-
 def _background_distance(mask: Tensor) -> Tensor:
     """(H, W) int16: distance from each pixel centre to the nearest foreground pixel centre.
 
@@ -450,8 +429,7 @@ def _carve_counts(centres: Tensor, radius: float, dists: list[Tensor], intrinsic
 
 def _candidates(R: int, device: torch.device | str) -> tuple[Tensor, Tensor]:
     """Flat indices (N,) and centres (N, 3) of the cells whose ball meets the unit sphere."""
-    c = _cell_axis(R, device)
-    g = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), dim=-1).reshape(-1, 3)
+    g = cell_centres(R, device).reshape(-1, 3)
     radius = math.sqrt(3.0) / R
     idx = torch.nonzero(g.norm(dim=-1) <= 1.0 + radius).squeeze(1)
     return idx, g[idx]
@@ -488,10 +466,6 @@ def _carve(R: int, dists: list[Tensor], intrinsics: Tensor, c2w: Tensor, views: 
     prior = (cfull_count[parent], cfull_carver[parent])
     return (idx, *_carve_counts(centres, math.sqrt(3.0) / R, dists, intrinsics, c2w, views,
                                 margin_px, prior))
-
-
-def _dilate(occ: Tensor) -> Tensor:
-    return F.max_pool3d(occ[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
 
 
 def _view_name(v: int, names: list[str] | None) -> str:
@@ -546,24 +520,25 @@ def _audit(hull: VisualHull, labels: Tensor | None, origins: Tensor, dirs: Tenso
     dev = hull.device
     origins, dirs, view = origins.to(dev), dirs.to(dev), view.to(dev)
     B = len(origins)
-    occ = hull.occupancy.reshape(-1)
 
-    def lookup(o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+    def cells(o: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
+        """The cells of the lookups along whole rays: flat (b, n), inside (b, n)."""
         zeros = torch.zeros(len(o), 1, device=dev)
         _, pts, ok = _ray_points(o, d, zeros, zeros + 1e6, hull.resolution)
-        flat, inside = hull._flat_index(pts)  # (b, n)
+        flat, inside = flat_index(hull.resolution, pts)
         return flat, inside & ok
 
+    occ = hull.occupancy.reshape(-1)
     hit = torch.zeros(B, dtype=torch.bool, device=dev)
     for s in range(0, B, 8192):
-        flat, inside = lookup(origins[s:s + 8192], dirs[s:s + 8192])
+        flat, inside = cells(origins[s:s + 8192], dirs[s:s + 8192])
         hit[s:s + 8192] = (occ[flat] & inside).any(dim=-1)
     through = torch.zeros(B, V, dtype=torch.bool, device=dev)  # missing rays only
     missed = torch.nonzero(~hit).squeeze(1)
     if labels is not None:
         for s in range(0, len(missed), 8192):
             m = missed[s:s + 8192]
-            flat, inside = lookup(origins[m], dirs[m])
+            flat, inside = cells(origins[m], dirs[m])
             lab = torch.where(inside, labels[flat], -1)  # (b, n)
             onehot = torch.zeros(len(m), V + 2, dtype=torch.bool, device=dev)
             onehot.scatter_(1, (lab + 1).long(), True)
@@ -621,7 +596,7 @@ def carve_hull(masks: Tensor, intrinsics: Tensor, c2w: Tensor,
         idx, count, carver = _carve(R, dists, intrinsics, c2w, carving, margin_px, dev)
         occ = torch.zeros(R ** 3, dtype=torch.bool, device=dev)
         occ[idx] = count == 0
-        hull = VisualHull(_dilate(occ.reshape(R, R, R)), margin_px)
+        hull = VisualHull(dilate(occ.reshape(R, R, R)), margin_px)
         if rays is None:
             explained = [1.0] * V
             break

@@ -37,24 +37,13 @@ import math
 from collections.abc import Callable
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from neus_l0.bounds.grid import cell_centres, dilate, lookup, occupied_span
 from neus_l0.config.schema import OccupancyConfig
 
 #: Points per SDF call of the grid update.
 UPDATE_CHUNK = 65536
-
-
-def cell_centres(resolution: int, device: torch.device | str = "cpu") -> Tensor:
-    """Centres of the cells of a ``resolution^3`` grid over ``[-1, 1]^3``.
-
-    Returns:
-        (R, R, R, 3) with ``[i, j, k] = (x_i, y_j, z_k)``.
-    """
-    c = 2.0 / resolution
-    ax = -1.0 + c * (torch.arange(resolution, device=device, dtype=torch.float32) + 0.5)
-    return torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), dim=-1)
 
 
 def occupancy_threshold(cell: float, inv_s: Tensor, margin: float, widths: float) -> Tensor:
@@ -70,19 +59,6 @@ def occupancy_threshold(cell: float, inv_s: Tensor, margin: float, widths: float
         () threshold, ``margin * sqrt(3) * cell / 2 + widths / s``.
     """
     return margin * math.sqrt(3.0) * 0.5 * cell + widths / inv_s.reshape(())
-
-
-def dilate(occ: Tensor) -> Tensor:
-    """Occupied cells and their 26 neighbours.
-
-    Args:
-        occ: (R, R, R) bool.
-
-    Returns:
-        (R, R, R) bool.
-    """
-    x = occ[None, None].float()
-    return F.max_pool3d(x, kernel_size=3, stride=1, padding=1)[0, 0] > 0.5
 
 
 def _eval_abs_sdf(sdf_fn: Callable[[Tensor], Tensor], pts: Tensor) -> Tensor:
@@ -153,21 +129,8 @@ def ray_spans(occ_dilated: Tensor, origins: Tensor, dirs: Tensor, near: Tensor,
     lin = torch.linspace(0.0, 1.0, n, device=near.device, dtype=near.dtype)
     t = near + length * lin  # (B, n)
     pts = origins[:, None, :] + dirs[:, None, :] * t[..., None]  # (B, n, 3)
-    ijk = torch.floor((pts + 1.0) / cell).long()  # (B, n, 3)
-    inside = ((ijk >= 0) & (ijk < R)).all(dim=-1)  # (B, n)
-    ijk = ijk.clamp(0, R - 1)
-    flat = (ijk[..., 0] * R + ijk[..., 1]) * R + ijk[..., 2]
-    hit = occ_dilated.reshape(-1)[flat] & inside  # (B, n)
-    active = hit.any(dim=-1)  # (B,)
-    idx = torch.arange(n, device=near.device)
-    first = torch.where(hit, idx, n).amin(dim=-1, keepdim=True)  # (B, 1)
-    last = torch.where(hit, idx, -1).amax(dim=-1, keepdim=True)
-    step = length / (n - 1)
-    lo = torch.maximum(near + (first.to(near.dtype) - 1.0) * step, near)
-    hi = torch.minimum(near + (last.to(near.dtype) + 1.0) * step, far)
-    lo = torch.where(active[:, None], lo, near)
-    hi = torch.where(active[:, None], hi, far)
-    return lo, hi, active
+    hit = lookup(occ_dilated, pts)  # (B, n)
+    return occupied_span(t, hit, near, far, length / (n - 1))
 
 
 class OccupancyGrid(torch.nn.Module):
@@ -217,11 +180,7 @@ class OccupancyGrid(torch.nn.Module):
     def contains(self, points: Tensor) -> Tensor:
         """(..., 3) normalised points -> (...) bool: in a cell of the dilated grid (what
         rays look up); False outside ``[-1, 1]^3``."""
-        R = self.cfg.resolution
-        ijk = torch.floor((points + 1.0) * (R / 2.0)).long()
-        inside = ((ijk >= 0) & (ijk < R)).all(dim=-1)
-        ijk = ijk.clamp(0, R - 1)
-        return self.occ_dilated[ijk[..., 0], ijk[..., 1], ijk[..., 2]] & inside
+        return lookup(self.occ_dilated, points)
 
     def fraction_occupied(self) -> Tensor:
         """() fraction of occupied cells (a tensor: read it when logging)."""
