@@ -302,11 +302,11 @@ def test_rays_that_cross_no_occupied_cell_do_no_sdf_work():
     per_ray = 16 + 8 + 32  # coarse + one intermediate round + the final pass
     model.sdf.points = 0
     img = render_image(model, o2.reshape(2, 2, 3), d2.reshape(2, 2, 3), cfg, "l0",
-                       occupancy=grid)
+                       bounds=(grid,))
     assert model.sdf.points == per_ray
     assert torch.equal(img["weight_sum"].reshape(-1)[:3], torch.zeros(3))
     model.sdf.points = 0
-    render_image(model, o.reshape(1, 3, 3), d.reshape(1, 3, 3), cfg, "l0", occupancy=grid)
+    render_image(model, o.reshape(1, 3, 3), d.reshape(1, 3, 3), cfg, "l0", bounds=(grid,))
     assert model.sdf.points == 0
 
 

@@ -34,6 +34,12 @@ class RayBounds(Protocol):
         ...
 
 
+def join_bounds(static: Sequence[RayBounds], grid: RayBounds | None) -> tuple[RayBounds, ...]:
+    """The bounds a ray batch is narrowed by, in order: the static ones (visual hull or SfM
+    point box), then the occupancy grid when there is one."""
+    return tuple(static) + ((grid,) if grid is not None else ())
+
+
 def ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
                bounds: Sequence[RayBounds] = ()) -> tuple[Tensor, Tensor, Tensor]:
     """Where each ray's samples go, and whether it gets any.

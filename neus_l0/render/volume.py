@@ -386,7 +386,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
 def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
                  sampler: Sampler | SamplerConfig | str = "l0",
                  cos_anneal_ratio: float = 1.0,
-                 chunk: int | None = None, occupancy: RayBounds | None = None,
+                 chunk: int | None = None,
                  bounds: Sequence[RayBounds] = ()) -> dict[str, Tensor]:
     """Render whole images in chunks of rays, without jitter or training graph.
 
@@ -396,7 +396,7 @@ def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderCon
     Args:
         origins, dirs: (H, W, 3).
         chunk: rays per chunk (default `cfg.chunk`).
-        occupancy, bounds: what narrows the rays (see `ray_bounds`).
+        bounds: what narrows the rays, in order (see `ray_bounds`).
 
     Returns:
         dict with ``color`` (H, W, 3), ``normal`` (H, W, 3), ``depth`` (H, W) and
@@ -404,7 +404,6 @@ def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderCon
     """
     H, W, _ = origins.shape
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-    bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
     use_bg = cfg.n_outside > 0 and model.background is not None
     if use_bg or not (cfg.cull_outside_sphere or bounds):
         idx = torch.arange(o.shape[0], device=o.device)

@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from neus_l0.bounds.occupancy import OccupancyGrid
+from neus_l0.bounds.spans import join_bounds
 from neus_l0.config.load import to_dict
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
@@ -76,7 +77,7 @@ class TrainLoop:
     @property
     def bounds(self) -> tuple:
         """Everything that narrows the rays: the setup's bounds, then the grid."""
-        return tuple(self.setup.bounds) + ((self.occupancy,) if self.occupancy is not None else ())
+        return join_bounds(self.setup.bounds, self.occupancy)
 
     @contextlib.contextmanager
     def evaluating(self) -> Iterator[None]:

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from neus_l0.bounds.occupancy import OccupancyGrid
 from neus_l0.bounds.pixel_pool import PixelPool
+from neus_l0.bounds.spans import join_bounds
 from neus_l0.config.schema import Config
 from neus_l0.data.rays import random_picks, random_rays, rays_at
 from neus_l0.data.scene import Scene
@@ -232,7 +233,7 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     update_occupancy(occupancy, model, cfg, iteration)
     # the static bounds are in the looked-up spans when the pool kept them
     static = tuple(setup.bounds) if inputs.span is None else ()
-    bounds = static + ((occupancy,) if occupancy is not None else ())
+    bounds = join_bounds(static, occupancy)
     # render and loss
     step_fn = setup.compiled or render_and_loss
     sampler = build_sampler(cfg.sampler) if setup.sampler is None else setup.sampler

@@ -33,19 +33,17 @@ def validation_views(scene: Scene, view: int, downscale: int) -> tuple[Tensor, T
 
 
 def validation_image(model: NeuSModel, scene: Scene, cfg: Config, view: int, iteration: int,
-                     occupancy: RayBounds | None = None, bounds: Sequence[RayBounds] = (),
-                     sampler=None) -> np.ndarray:
+                     bounds: Sequence[RayBounds] = (), sampler=None) -> np.ndarray:
     """Ground truth | rendered colour | normals (camera frame) of a downscaled view.
 
     Args:
-        occupancy, bounds: what narrows the rays (see `neus_l0.bounds.spans.ray_bounds`).
+        bounds: what narrows the rays (see `neus_l0.bounds.spans.ray_bounds`).
         sampler: the up-sampling draw (default: the config's).
 
     Returns:
         (h, 3w, 3) uint8 RGB.
     """
     o, d, rgb = validation_views(scene, view, max(1, cfg.train.val_downscale))
-    bounds = tuple(bounds) + ((occupancy,) if occupancy is not None else ())
     out = render_image(model, o, d, cfg.render, cfg.sampler if sampler is None else sampler,
                        cos_anneal_ratio(iteration, cfg.train.anneal_end), bounds=bounds)
     rot = scene.c2w[view, :3, :3]  # camera -> world
