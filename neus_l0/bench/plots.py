@@ -17,7 +17,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from collections import defaultdict
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 
 from neus_l0.atomic import atomic_path, atomic_write_text
 from neus_l0.bench.results import read_results
+from neus_l0.run.metrics import read_lines
 
 #: Line colours per sampler (others cycle through matplotlib's defaults).
 COLORS = {"hvs": "tab:blue", "l0": "tab:red", "l0-inverse": "tab:green",
@@ -149,17 +149,11 @@ def plot_metric_vs_iterations(rows: list[dict], metric: str, ylabel: str, path: 
 def read_sample_distance(run_dir: Path) -> tuple[np.ndarray, np.ndarray]:
     """(iterations, sample_dist) logged in ``run_dir/metrics.jsonl`` (empty if none)."""
     its, vals = [], []
-    path = Path(run_dir) / "metrics.jsonl"
-    if path.is_file():
-        for line in path.read_text(encoding="utf-8").splitlines():
-            try:
-                m = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            v = m.get("sample_dist")
-            if v is not None and math.isfinite(v):
-                its.append(m["iter"])
-                vals.append(v)
+    for m in read_lines(run_dir):
+        v = m.get("sample_dist")
+        if isinstance(v, (int, float)) and math.isfinite(v) and "iter" in m:
+            its.append(m["iter"])
+            vals.append(v)
     return np.array(its), np.array(vals)
 
 

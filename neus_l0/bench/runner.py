@@ -42,6 +42,7 @@ from pathlib import Path
 
 from neus_l0.atomic import atomic_write_json
 from neus_l0.bench.results import make_row
+from neus_l0.run.metrics import snapshot_lines
 
 #: Settings every bench run gets before the user's overrides: no validation renders and a
 #: checkpoint only at the end (both would count against the budget).
@@ -300,13 +301,8 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
 def _snapshot_elapsed(run_dir: Path) -> dict[int, float]:
     """Loop time (s) of each snapshot iteration, from the run's metrics.jsonl."""
     out = {}
-    for line in (run_dir / "metrics.jsonl").read_text(encoding="utf-8").splitlines():
-        try:
-            m = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if "snapshot_s" in m:
-            out.setdefault(int(m["iter"]), float(m["elapsed"]))
+    for m in snapshot_lines(run_dir):
+        out.setdefault(int(m["iter"]), float(m["elapsed"]))
     return out
 
 

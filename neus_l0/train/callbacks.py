@@ -19,12 +19,12 @@ The clock (`neus_l0.train.state.Clock`) counts training time; callbacks whose wo
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from neus_l0.run.checkpoints import checkpoint_path
+from neus_l0.run.metrics import append_line, snapshot_lines
 from neus_l0.train.state import TrainLoop
 
 #: A training hook: ``hook(iteration, model, scene, cfg) -> {name: number}``.
@@ -74,8 +74,7 @@ class MetricsFile(TrainingCallback):
     """Appends each metrics line to ``RUN/metrics.jsonl``."""
 
     def on_log(self, loop: TrainLoop, metrics: dict) -> None:
-        with open(loop.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
-            f.write(json.dumps(metrics) + "\n")
+        append_line(loop.run_dir, metrics)
 
 
 class ProgressBar(TrainingCallback):
@@ -150,7 +149,8 @@ class Snapshots(TrainingCallback):
 
     def on_start(self, loop: TrainLoop) -> None:
         if self.marks:
-            loop.protected |= snapshot_checkpoints(loop.run_dir / "metrics.jsonl")
+            loop.protected |= {checkpoint_path(loop.run_dir, int(m["iter"]))
+                               for m in snapshot_lines(loop.run_dir)}
             loop.protect_snapshots = True
 
     def after_step(self, loop: TrainLoop) -> None:
@@ -173,28 +173,12 @@ class Snapshots(TrainingCallback):
             loop.protected.add(path)  # before writing, so that its own pruning keeps it
             if loop.last_checkpoint != path:
                 loop.save()
-            with open(loop.run_dir / "metrics.jsonl", "a", encoding="utf-8") as f:
-                while len(self.taken) < len(self.marks) and (
-                        final or self.marks[len(self.taken)] <= elapsed):
-                    mark = self.marks[len(self.taken)]
-                    self.taken.append((mark, loop.iteration, path))
-                    f.write(json.dumps({"snapshot_s": mark, "iter": loop.iteration,
-                                        "elapsed": elapsed}) + "\n")
-
-
-def snapshot_checkpoints(metrics_path: Path) -> set[Path]:
-    """Checkpoints of the snapshot lines already in ``metrics.jsonl`` (before a resume)."""
-    if not metrics_path.exists():
-        return set()
-    found = set()
-    for line in metrics_path.read_text(encoding="utf-8").splitlines():
-        try:
-            m = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if "snapshot_s" in m and "iter" in m:
-            found.add(checkpoint_path(metrics_path.parent, int(m["iter"])))
-    return found
+            while len(self.taken) < len(self.marks) and (
+                    final or self.marks[len(self.taken)] <= elapsed):
+                mark = self.marks[len(self.taken)]
+                self.taken.append((mark, loop.iteration, path))
+                append_line(loop.run_dir, {"snapshot_s": mark, "iter": loop.iteration,
+                                           "elapsed": elapsed})
 
 
 class TensorBoard(TrainingCallback):

@@ -18,7 +18,6 @@ accumulated metrics are read back every ``train.log_every`` iterations only.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -42,6 +41,8 @@ from neus_l0.run.checkpoints import (
     restore_training,
 )
 from neus_l0.run.lock import RunLock
+from neus_l0.run.metrics import last_log_line
+from neus_l0.run.metrics import truncate as truncate_metrics
 from neus_l0.sampling.upsample import build_sampler
 from neus_l0.train.callbacks import (
     Checkpoints,
@@ -102,20 +103,6 @@ def _check_scene(scene: Scene, cfg: Config) -> None:
     if cfg.train.mask_weight > 0 and not scene.has_masks:
         raise ConfigError(f"{scene.root}: train.mask_weight={cfg.train.mask_weight} but the "
                           "scene has no mask/ folder (use --conf womask or train.mask_weight=0)")
-
-
-def _truncate_metrics(path: Path, iteration: int) -> None:
-    """Keep only the metric lines up to `iteration` (after a resume)."""
-    if not path.exists():
-        return
-    keep = []
-    for line in path.read_text(encoding="utf-8").splitlines():
-        try:
-            if json.loads(line).get("iter", 0) <= iteration:
-                keep.append(line)
-        except json.JSONDecodeError:
-            continue
-    atomic_write_text(path, "".join(k + "\n" for k in keep))
 
 
 def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
@@ -191,7 +178,7 @@ def _write_run_files(loop: TrainLoop) -> None:
         "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
         "n_views": scene.n_views, "height": scene.height, "width": scene.width,
     })
-    _truncate_metrics(loop.run_dir / "metrics.jsonl", loop.iteration)
+    truncate_metrics(loop.run_dir, loop.iteration)
 
 
 def read_metrics(loop: TrainLoop, acc: Tensor, steps: int, last: Tensor,
@@ -317,18 +304,6 @@ def _run_loop(loop: TrainLoop, cbs: list[TrainingCallback], stop_at: int | None,
         loop.save()
     snaps = next((cb.taken for cb in cbs if isinstance(cb, Snapshots)), [])
     return TrainResult(loop.run_dir, loop.iteration, loop.last_checkpoint,
-                       _last_metrics(loop.run_dir), loop.clock.elapsed(), stopped_early, snaps,
+                       last_log_line(loop.run_dir), loop.clock.elapsed(), stopped_early, snaps,
                        signal=stop.signal_name if stop.requested else None,
                        exit_code=stop.exit_code)
-
-
-def _last_metrics(run_dir: Path) -> dict:
-    """The newest regular line of ``metrics.jsonl`` (empty when none was logged)."""
-    path = run_dir / "metrics.jsonl"
-    if not path.exists():
-        return {}
-    for line in reversed(path.read_text(encoding="utf-8").splitlines()):
-        m = json.loads(line)
-        if "loss" in m:
-            return m
-    return {}

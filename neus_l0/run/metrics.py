@@ -1,0 +1,90 @@
+"""A run's ``metrics.jsonl``: the one reader and writer.
+
+One JSON object a line, appended as training goes:
+
+* a *log line* every ``train.log_every`` iterations: ``iter``, ``loss``, ``psnr``,
+  ``inv_s`` (NeuS's sharpness s, the inverse standard deviation of its logistic density),
+  ``lr``, ``elapsed``, ... and the numbers that training hooks add (``sample_dist``);
+* a *snapshot line* for each checkpoint a snapshot mark took: ``snapshot_s``, ``iter``,
+  ``elapsed``.
+
+Reading skips lines that do not parse (a line cut by a crash), and renames the keys that
+older runs wrote (`OLD_KEYS`: ``s`` held 1/s under a misleading name), so every run folder
+reads the same way.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+from neus_l0.atomic import atomic_write_text
+
+#: The metrics file's name inside a run folder.
+METRICS_FILE = "metrics.jsonl"
+
+#: Keys older runs wrote, and today's names for them.
+OLD_KEYS: dict[str, str] = {}
+
+
+def metrics_path(run_dir: str | Path) -> Path:
+    """``RUN/metrics.jsonl``."""
+    return Path(run_dir) / METRICS_FILE
+
+
+def _parse(line: str) -> dict | None:
+    """One line as a dict with today's keys, or None (empty, cut or not an object)."""
+    try:
+        m = json.loads(line)
+    except json.JSONDecodeError:
+        return None
+    if not isinstance(m, dict):
+        return None
+    for old, new in OLD_KEYS.items():
+        if old in m and new not in m:
+            m[new] = m.pop(old)
+    return m
+
+
+def read_lines(run_dir: str | Path) -> Iterator[dict]:
+    """Every line of the run's metrics file that parses, in order (none if no file)."""
+    path = metrics_path(run_dir)
+    if not path.is_file():
+        return
+    for line in path.read_text(encoding="utf-8").splitlines():
+        m = _parse(line)
+        if m is not None:
+            yield m
+
+
+def log_lines(run_dir: str | Path) -> list[dict]:
+    """The log lines (those with a ``loss``), in order."""
+    return [m for m in read_lines(run_dir) if "loss" in m]
+
+
+def last_log_line(run_dir: str | Path) -> dict:
+    """The newest log line (empty when none was logged)."""
+    lines = log_lines(run_dir)
+    return lines[-1] if lines else {}
+
+
+def snapshot_lines(run_dir: str | Path) -> list[dict]:
+    """The snapshot lines (``snapshot_s``, ``iter``, ``elapsed``), in order."""
+    return [m for m in read_lines(run_dir) if "snapshot_s" in m and "iter" in m]
+
+
+def append_line(run_dir: str | Path, line: dict) -> None:
+    """Append one line (a line is small, so the append is one write)."""
+    with open(metrics_path(run_dir), "a", encoding="utf-8") as f:
+        f.write(json.dumps(line) + "\n")
+
+
+def truncate(run_dir: str | Path, iteration: int) -> None:
+    """Keep only the lines up to `iteration` (after a resume), dropping lines that do not
+    parse; written atomically."""
+    path = metrics_path(run_dir)
+    if not path.exists():
+        return
+    keep = [m for m in read_lines(run_dir) if m.get("iter", 0) <= iteration]
+    atomic_write_text(path, "".join(json.dumps(m) + "\n" for m in keep))
