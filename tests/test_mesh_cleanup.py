@@ -91,7 +91,7 @@ def test_options_are_checked():
 
 
 def test_mesh_command_flags(tmp_path, capsys, monkeypatch):
-    import neus_l0.run.checkpoints
+    import neus_l0.mesh.from_run
     from neus_l0.cli import main
     from neus_l0.data.shapes import Sphere
 
@@ -109,7 +109,7 @@ def test_mesh_command_flags(tmp_path, capsys, monkeypatch):
         return _Model(), None, {"scale_mat": scale, "path": tmp_path / "ckpt.pt",
                                 "iteration": 7}
 
-    monkeypatch.setattr(neus_l0.run.checkpoints, "load_trained_model", fake_load)
+    monkeypatch.setattr(neus_l0.mesh.from_run, "load_trained_model", fake_load)
     out = tmp_path / "m.ply"
     assert main(["mesh", str(tmp_path), "--resolution", "64", "--out", str(out),
                  "--simplify", "500", "--smooth", "3", "--min-component", "0.05",

@@ -246,14 +246,14 @@ def test_sparse_1024_sphere_fits_in_memory():
 # --- the command ----------------------------------------------------------------------------
 
 def test_mesh_command_reports_sparse_extraction(tmp_path, monkeypatch, capsys):
-    import neus_l0.run.checkpoints
+    import neus_l0.mesh.from_run
     from neus_l0.cli import main
 
     def fake_load(run, device, checkpoint=None):
         return (_Model(Sphere((0.0, 0.0, 0.0), 0.5)), None,
                 {"scale_mat": np.eye(4), "path": tmp_path / "ckpt.pt", "iteration": 7})
 
-    monkeypatch.setattr(neus_l0.run.checkpoints, "load_trained_model", fake_load)
+    monkeypatch.setattr(neus_l0.mesh.from_run, "load_trained_model", fake_load)
     assert main(["mesh", str(tmp_path), "--resolution", "160"]) == 0
     out = capsys.readouterr().out
     assert "sparse extraction at 160^3" in out and "SDF evaluations" in out

@@ -119,7 +119,7 @@ def test_textured_obj_loads_back(baked, tmp_path):
 def test_mesh_command_texture(tmp_path, capsys, monkeypatch):
     import torch
 
-    import neus_l0.run.checkpoints
+    import neus_l0.mesh.from_run
     from neus_l0.cli import main
     from neus_l0.data.shapes import Sphere
 
@@ -142,7 +142,7 @@ def test_mesh_command_texture(tmp_path, capsys, monkeypatch):
         return _Model(), None, {"scale_mat": np.eye(4), "path": tmp_path / "ckpt.pt",
                                 "iteration": 7}
 
-    monkeypatch.setattr(neus_l0.run.checkpoints, "load_trained_model", fake_load)
+    monkeypatch.setattr(neus_l0.mesh.from_run, "load_trained_model", fake_load)
     out = tmp_path / "t.obj"
     assert main(["mesh", str(tmp_path), "--resolution", "40", "--texture", "--texture-size",
                  "128", "--simplify", "800", "--out", str(out)]) == 0

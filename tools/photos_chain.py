@@ -37,8 +37,8 @@ def train_and_mesh(scene_dir: Path, run_dir: Path, conf: str, overrides: list[st
     from neus_l0.atomic import atomic_write_json
     from neus_l0.config.load import load_config
     from neus_l0.data.scene import load_scene
-    from neus_l0.mesh.extract import export_mesh, extract_mesh
-    from neus_l0.run.checkpoints import load_trained_model
+    from neus_l0.mesh.extract import export_mesh
+    from neus_l0.mesh.from_run import mesh_from_run
     from neus_l0.train.loop import train
 
     done = run_dir / "chain_run.json"
@@ -53,9 +53,7 @@ def train_and_mesh(scene_dir: Path, run_dir: Path, conf: str, overrides: list[st
     result = train(scene, cfg, run_dir, device="cpu", progress=False)
     load1 = os.getloadavg()[0]
     t0 = time.perf_counter()
-    model, _, info = load_trained_model(run_dir, "cpu")
-    mesh = extract_mesh(model, np.asarray(info["scale_mat"]), resolution=resolution,
-                        clean=True, device="cpu")
+    mesh = mesh_from_run(run_dir, resolution, "cpu").mesh  # inside the run's hull, if any
     export_mesh(mesh, run_dir / "mesh.ply")
     out = {"iterations": result.iteration, "train_seconds": round(result.seconds, 1),
            "stopped_early": result.stopped_early, "mesh_seconds":

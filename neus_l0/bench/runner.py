@@ -250,7 +250,7 @@ def curve_point(seconds: float, iteration: int, score: dict | None, mesh_s: floa
 
 
 def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], final_iter: int,
-                    scale_mat, elapsed: dict[int, float], score_fn,
+                    elapsed: dict[int, float], score_fn,
                     report=None) -> list[dict]:
     """Mesh and score every snapshot checkpoint except the final model's.
 
@@ -258,7 +258,6 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         spec: the run (device, resolution).
         snapshots: `neus_l0.train.loop.TrainResult.snapshots`, ``(mark, iteration, checkpoint)``.
         final_iter: the final model's iteration (its snapshot is the final point).
-        scale_mat: (4, 4) normalised -> world.
         elapsed: loop time (s) of each snapshot iteration (metrics.jsonl's ``elapsed``).
         score_fn: ``score_fn(mesh_path) -> report or None``.
         report: a `neus_l0.bench.progress.StepReporter` (or None), told after each snapshot.
@@ -267,12 +266,9 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         curve points in iteration order; a snapshot whose mesh cannot be made (no surface
         yet) gets missing numbers and an ``error``.
     """
-    import numpy as np
-
-    from neus_l0.bounds.hull import load_run_hull
     from neus_l0.errors import NeusL0Error
-    from neus_l0.mesh.extract import export_mesh, extract_mesh
-    from neus_l0.run.checkpoints import load_trained_model
+    from neus_l0.mesh.extract import export_mesh
+    from neus_l0.mesh.from_run import mesh_from_run
 
     points = []
     seen = set()
@@ -283,12 +279,9 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         seen.add(iteration)
         if report is not None:
             report("snapshots: mesh and score", len(seen) - 1, todo, "snapshot")
-        model, _, _ = load_trained_model(spec.run_dir, spec.device, checkpoint=ckpt)
         t0 = time.monotonic()
         try:
-            mesh = extract_mesh(model, np.asarray(scale_mat), resolution=spec.resolution,
-                                clean=True, device=spec.device,
-                                hull=load_run_hull(spec.run_dir, spec.device))
+            mesh = mesh_from_run(spec.run_dir, spec.resolution, spec.device, ckpt).mesh
         except NeusL0Error as exc:
             points.append(curve_point(elapsed[iteration], iteration, None, None, str(exc)))
             continue
@@ -359,10 +352,9 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
 
     from neus_l0.bench.holdout import split_views, subset_scene
     from neus_l0.bench.sample_distance import SampleDistanceHook, SurfaceDistance
-    from neus_l0.bounds.hull import load_run_hull
     from neus_l0.data.scene import load_scene
-    from neus_l0.mesh.extract import export_mesh, extract_mesh
-    from neus_l0.run.checkpoints import load_trained_model
+    from neus_l0.mesh.extract import export_mesh
+    from neus_l0.mesh.from_run import mesh_from_run
     from neus_l0.train.loop import train
 
     if spec.threads:
@@ -387,20 +379,17 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     peak_gpu = (torch.cuda.max_memory_allocated() / 2**20 if spec.device == "cuda" else None)
 
     t0 = time.monotonic()
-    model, _, _ = load_trained_model(run_dir, spec.device)
+    report(f"mesh: marching cubes {spec.resolution}^3")
+    made = mesh_from_run(run_dir, spec.resolution, spec.device)
+    timings["extract_s"] = time.monotonic() - t0
+    mesh_path = export_mesh(made.mesh, run_dir / "mesh.ply")
+    timings["mesh_s"] = time.monotonic() - t0
     sample_dist = None
     if hook is not None:
         report("final sample distance")
         with torch.no_grad():
-            sample_dist = hook(result.iteration, model, train_scene.to(spec.device),
+            sample_dist = hook(result.iteration, made.model, train_scene.to(spec.device),
                                cfg, force=True)["sample_dist"]
-    t_extract = time.monotonic()
-    report(f"mesh: marching cubes {spec.resolution}^3")
-    mesh = extract_mesh(model, np.asarray(full.scale_mat), resolution=spec.resolution,
-                        clean=True, device=spec.device, hull=load_run_hull(run_dir, spec.device))
-    timings["extract_s"] = time.monotonic() - t_extract
-    mesh_path = export_mesh(mesh, run_dir / "mesh.ply")
-    timings["mesh_s"] = time.monotonic() - t0
 
     score_fn = functools.partial(_score, spec)
     t0 = time.monotonic()
@@ -409,14 +398,14 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     timings["score_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
-    curve = score_snapshots(spec, result.snapshots, result.iteration, full.scale_mat,
+    curve = score_snapshots(spec, result.snapshots, result.iteration,
                             _snapshot_elapsed(run_dir) if result.snapshots else {}, score_fn,
                             report)
     curve.append(curve_point(result.seconds, result.iteration, score, timings["extract_s"]))
     timings["snapshots_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
-    psnrs = heldout_psnr(model, full.to(spec.device), test_views, cfg, result.iteration,
+    psnrs = heldout_psnr(made.model, full.to(spec.device), test_views, cfg, result.iteration,
                          spec.psnr_pixels, report)
     timings["psnr_s"] = time.monotonic() - t0
 

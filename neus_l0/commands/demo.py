@@ -78,18 +78,17 @@ def run(args: argparse.Namespace) -> int:
     import json
     import time
 
-    import numpy as np
     import torch
 
     from neus_l0.atomic import atomic_write_json
-    from neus_l0.bounds.hull import load_run_hull
     from neus_l0.commands._paths import check_output_dir
     from neus_l0.config.load import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
     from neus_l0.device import pick_device
-    from neus_l0.mesh.extract import export_mesh, extract_mesh
-    from neus_l0.run.checkpoints import latest_checkpoint, load_trained_model
+    from neus_l0.mesh.extract import export_mesh
+    from neus_l0.mesh.from_run import mesh_from_run
+    from neus_l0.run.checkpoints import latest_checkpoint
     from neus_l0.train.loop import train
 
     out = check_output_dir(args.out, "--out")
@@ -127,9 +126,7 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.monotonic()
     print(f"[3/4] extracting the mesh at {args.resolution}^3 ...", flush=True)
-    model, _, info = load_trained_model(run_dir, device)
-    mesh = extract_mesh(model, np.asarray(info["scale_mat"]), resolution=args.resolution,
-                        clean=True, device=device, hull=load_run_hull(run_dir, device))
+    mesh = mesh_from_run(run_dir, args.resolution, device).mesh
     mesh_path = export_mesh(mesh, out / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0
 

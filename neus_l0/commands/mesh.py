@@ -83,20 +83,17 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from neus_l0.bounds.hull import load_run_hull
     from neus_l0.data.cameras import to_normalised
     from neus_l0.device import pick_device
     from neus_l0.mesh.cleanup import clean_up
-    from neus_l0.mesh.extract import export_mesh, extract_mesh, vertex_colors
-    from neus_l0.run.checkpoints import load_trained_model
+    from neus_l0.mesh.extract import export_mesh, vertex_colors
+    from neus_l0.mesh.from_run import mesh_from_run
 
     out, method, options = _check(args)
     device = pick_device(args.device)
     t0 = time.monotonic()
-    model, _, info = load_trained_model(args.run, device, args.checkpoint)
-    scale_mat = np.asarray(info["scale_mat"])
-    mesh = extract_mesh(model, scale_mat, resolution=args.resolution, clean=args.clean,
-                        device=device, method=method, hull=load_run_hull(args.run, device))
+    made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method)
+    mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "
           f"evaluations ({st['sdf_evals'] / st['dense_evals']:.1%} of the dense grid), "
