@@ -366,7 +366,7 @@ def test_sample_distance_hook_is_zero_for_samples_on_the_surface(monkeypatch):
     def fake_render(model, origins, dirs, render_cfg, sampler, **kwargs):
         hits = _sphere_hits(origins.double(), dirs.double(), 0.5)  # (B, 2)
         z = hits.repeat(1, render_cfg.n_importance // 2) + offset["value"]
-        return {"z_fine": z}  # (B, n_importance): every fine sample on the sphere
+        return {"t_fine": z}  # (B, n_importance): every fine sample on the sphere
 
     monkeypatch.setattr("neus_l0.render.volume.render_rays", fake_render)
     hook = SampleDistanceHook(surface, n_rays=64)

@@ -1,18 +1,14 @@
-"""`sampler.compile` (was `render.compile_sampler`) is deprecated: the whole-step compile
-(`train.compile`) covers the draw. Old configs still load, with one warning, and draw
-eagerly; the eager L0 draws survive adversarial weights.
+"""The retired `sampler.compile` (was `render.compile_sampler`): the whole-step compile
+(`train.compile`) covers the draw. Old configs and checkpoints still load, with one
+warning, and draw as today's; the eager L0 draws survive adversarial weights.
 """
-
-import warnings
 
 import pytest
 import torch
 
-import neus_l0.sampling.upsample as samplers_module
-from neus_l0.config.load import load_config
-from neus_l0.config.schema import SAMPLERS, SamplerConfig
+from neus_l0.config.load import config_from_dict, load_config, to_dict
+from neus_l0.config.schema import Config
 from neus_l0.sampling.kernels import sample_l0
-from neus_l0.sampling.upsample import L0Sampler, Sections, build_sampler
 
 
 def _adversarial(B: int, N: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -44,34 +40,19 @@ def test_eager_draws_survive_adversarial_weights(kind, pad):
             torch.testing.assert_close(s[0], ref[0], rtol=1e-5, atol=1e-5)
 
 
-@pytest.fixture()
-def fresh_warning(monkeypatch):
-    monkeypatch.setattr(samplers_module, "_COMPILE_WARNED", False)
-
-
-def test_sampler_compile_warns_once_and_draws_eagerly(fresh_warning):
-    g = torch.Generator().manual_seed(1)
-    z = torch.sort(torch.rand(16, 9, generator=g), dim=-1).values
-    w = torch.rand(16, 8, generator=g)
-    sec = Sections(z=z, weights=w, prev_sdf=torch.zeros_like(w), next_sdf=-torch.ones_like(w),
-                   inv_s=64.0)
-    with pytest.warns(FutureWarning, match="train.compile=true"):
-        build_sampler(SamplerConfig(name="l0", compile=True))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # once per process: no second warning
-        for name in SAMPLERS:
-            a = build_sampler(SamplerConfig(name=name, pad=0.001)).draw(sec, 8)
-            b = build_sampler(SamplerConfig(name=name, pad=0.001, compile=True)).draw(sec, 8)
-            assert torch.equal(a, b), name
-        assert L0Sampler(compile=True)._draw is sample_l0
-
-
-def test_old_configs_with_compile_still_load(tmp_path, fresh_warning):
+def test_old_configs_with_compile_load_with_one_warning(tmp_path):
     p = tmp_path / "old.yaml"
     p.write_text("sampler: l0\nrender: {compile_sampler: true, n_samples: 16}\n")
-    cfg = load_config(str(p))
-    assert cfg.sampler.compile is True
-    with pytest.warns(FutureWarning):
-        sampler = build_sampler(cfg.sampler)
-    assert sampler._draw is sample_l0
-    assert load_config("demo", ["sampler.compile=true"]).sampler.compile is True
+    with pytest.warns(FutureWarning, match="render.compile_sampler"):
+        cfg = load_config(str(p))
+    assert cfg.render.n_samples == 16 and cfg.sampler.name == "l0"
+    assert not hasattr(cfg.sampler, "compile")
+    with pytest.warns(FutureWarning, match="sampler.compile"):
+        assert load_config("demo", ["sampler.compile=true"]) == load_config("demo")
+
+
+def test_a_checkpoint_config_with_compile_loads_as_todays(recwarn):
+    old = to_dict(Config())
+    old["sampler"]["compile"] = False  # what sessions 1-5 dumped
+    assert config_from_dict(old) == Config()
+    assert any("sampler.compile" in str(w.message) for w in recwarn.list)

@@ -15,7 +15,6 @@ from neus_l0.render.volume import coarse_z_vals, outside_z_vals, render_image, r
 from neus_l0.sampling.upsample import (
     Sections,
     build_sampler,
-    merge_sorted,
     section_to_point_weights,
     transmittance,
     upsample_section_weights,
@@ -104,13 +103,9 @@ def test_upsample_weights_peak_at_the_surface():
     assert w.sum() <= 1.0 + 1e-5
 
 
-def test_transmittance_and_merge():
+def test_transmittance():
     alpha = torch.tensor([[0.5, 0.5, 1.0, 0.3]])
     assert torch.allclose(transmittance(alpha), torch.tensor([[1.0, 0.5, 0.25, 0.0]]), atol=1e-6)
-    z, v = merge_sorted(torch.tensor([[0.0, 2.0]]), torch.tensor([[1.0, 3.0]]),
-                        torch.tensor([[10.0, 12.0]]), torch.tensor([[11.0, 13.0]]))
-    assert torch.equal(z, torch.tensor([[0.0, 1.0, 2.0, 3.0]]))
-    assert torch.equal(v, torch.tensor([[10.0, 11.0, 12.0, 13.0]]))
 
 
 def test_section_to_point_weights():
@@ -156,8 +151,8 @@ def test_fine_samples_cluster_at_an_analytic_sphere(sampler):
     out = render_rays(model, o, d, cfg, sampler, create_graph=False)
     for k, v in out.items():
         assert torch.isfinite(v).all(), k
-    assert out["z_fine"].shape == (256, 64) and out["z_vals"].shape == (256, 128)
-    err = (out["z_fine"][hit] - t_hit[hit, None]).abs()
+    assert out["t_fine"].shape == (256, 64) and out["t"].shape == (256, 128)
+    err = (out["t_fine"][hit] - t_hit[hit, None]).abs()
     # most fine samples lie within a few 1/inv_s of the first surface hit
     assert (err < 0.02).float().mean() > 0.5, sampler
     assert err.median() < 0.02
@@ -180,7 +175,7 @@ def test_l0_midpoint_default_at_least_as_tight_as_endpoint():
         from neus_l0.config.schema import SamplerConfig
 
         out = render_rays(model, o, d, RenderConfig(), SamplerConfig(placement=placement))
-        frac[placement] = ((out["z_fine"][hit] - t_hit[hit, None]).abs() < 0.005).float().mean()
+        frac[placement] = ((out["t_fine"][hit] - t_hit[hit, None]).abs() < 0.005).float().mean()
     assert frac["midpoint"] >= frac["endpoint"] - 0.01
 
 
@@ -212,7 +207,7 @@ def test_render_is_deterministic_given_the_generator():
     model = sphere_model()
     o, d, _, _ = rays_at_sphere(16)
     outs = [render_rays(model, o, d, RenderConfig(), "l0", perturb=True,
-                        generator=torch.Generator().manual_seed(3))["z_vals"] for _ in range(2)]
+                        generator=torch.Generator().manual_seed(3))["t"] for _ in range(2)]
     assert torch.equal(outs[0], outs[1])
 
 
@@ -276,8 +271,8 @@ def test_grid_gives_the_same_render_on_rays_that_hit(sampler):
         assert (out["weight_sum"][hit] - ref["weight_sum"][hit]).abs().max() < 2e-3
         # samples only inside the tightened span: none more than the band (about
         # 1.5 half-diagonals + 6 / s + a dilated cell + a lookup step) before the surface
-        assert (out["z_vals"][hit].min(dim=-1).values > t_hit[hit] - 0.25).all()
-        assert (ref["z_vals"][hit].min(dim=-1).values < t_hit[hit] - 0.4).all()
+        assert (out["t"][hit].min(dim=-1).values > t_hit[hit] - 0.25).all()
+        assert (ref["t"][hit].min(dim=-1).values < t_hit[hit] - 0.4).all()
 
 
 def test_rays_that_cross_no_occupied_cell_do_no_sdf_work():
@@ -324,7 +319,7 @@ def test_rays_missing_the_sphere_get_no_samples():
     assert torch.equal(out["weight_sum"][:2], torch.zeros(2, 1))
     assert out["weight_sum"][2] > 0.99
     # the hitting ray's coarse samples lie on its chord of the unit sphere, [2, 4]
-    z = out["z_vals"][2]
+    z = out["t"][2]
     assert z.min() >= 2.0 - 1e-5 and z.max() <= 4.0 + 1e-5
 
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
-
 import pytest
 import torch
 
@@ -154,14 +152,6 @@ def test_l0_sampler_is_sample_l0_on_point_weights():
     padded = L0Sampler(pad=0.05, pad_mode="absolute", masses="interpolant")
     t, w = padded.point_weights(sec)
     torch.testing.assert_close(w, section_to_point_weights(sec.z, sec.weights)[1] + 0.05)
-
-
-def test_compile_is_deprecated_and_draws_eagerly():
-    assert L0Sampler(compile=False)._draw is sample_l0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FutureWarning)  # tests/test_compile_sampler.py
-        assert L0Sampler(kind="inverse", compile=True)._draw is sample_l0
-        assert L0Sampler(kind="exp", compile=True)._draw is sample_l0
 
 
 def _sphere_rays(B: int = 32):

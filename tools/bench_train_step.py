@@ -184,7 +184,7 @@ def main() -> None:
           f"torch {torch.__version__} device {device} threads {args.threads} "
           f"cpus {os.cpu_count()} load {os.getloadavg()[0]:.1f}")
     print(f"# conf {args.conf} {' '.join(args.overrides)}: batch {c.train.batch_size}, "
-          f"samples {c.render.n_samples}+{c.render.n_importance}, sampler {c.sampler}, "
+          f"samples {c.render.n_samples}+{c.render.n_importance}, sampler {c.sampler.name}, "
           f"sdf {c.model.sdf.layers}x{c.model.sdf.hidden}; scene demo {args.views} views "
           f"{args.width}x{args.height}; warm-up {args.warm} its ({warm_s:.0f} s); "
           f"{args.rounds} rounds x {args.steps} steps")

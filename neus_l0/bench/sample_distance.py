@@ -164,6 +164,6 @@ class SampleDistanceHook:
         out = render_rays(model, o, d, cfg.render, cfg.sampler,
                           cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end),
                           perturb=False)
-        dist = self.surface(fine_points_world(o, d, out["z_fine"], scene.scale_mat))
+        dist = self.surface(fine_points_world(o, d, out["t_fine"], scene.scale_mat))
         value = float(np.mean(dist))
         return {"sample_dist": value if math.isfinite(value) else None}

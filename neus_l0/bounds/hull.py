@@ -688,15 +688,6 @@ def hull_for_run(scene, path: str | Path, resolution: int = DEFAULT_RESOLUTION,
     return hull
 
 
-def format_report(report: HullReport) -> str:
-    """Human-readable lines: the fraction kept, the time, and the warnings."""
-    n_carve = sum(s in ("ok", "full") for s in report.status)
-    lines = [f"visual hull  keeps {report.fraction_kept:.1%} of the bounding sphere "
-             f"({n_carve} of {len(report.status)} views carve; {report.seconds:.1f} s)"]
-    lines += [f"warning      {w}" for w in report.warnings]
-    return "\n".join(lines)
-
-
 def load_run_hull(run_dir: str | Path, device: str | torch.device = "cpu") -> VisualHull | None:
     """The hull a training run carved (``RUN/hull.pt``), or None when it has none."""
     path = Path(run_dir) / "hull.pt"

@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     scene = load_scene(scene_dir, downscale=cfg.data.downscale, device=device)
     resume = latest_checkpoint(run_dir) is not None
     print(f"[2/4] training ({cfg.train.iters} iterations at most, "
-          f"{cfg.train.max_seconds:.0f} s budget, sampler {cfg.sampler}, {threads} "
+          f"{cfg.train.max_seconds:.0f} s budget, sampler {cfg.sampler.name}, {threads} "
           f"thread{'s' if threads > 1 else ''}) into {run_dir}"
           f"{' (resuming)' if resume else ''} ...", flush=True)
     result = train(scene, cfg, run_dir, device=device, resume=resume, progress=not args.quiet)
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
         "train_final": result.metrics,
         "mesh": {"path": str(mesh_path), "vertices": len(mesh.vertices),
                  "faces": len(mesh.faces), "resolution": args.resolution},
-        "sampler": str(cfg.sampler),
+        "sampler": cfg.sampler.name,
         "conf": str(args.conf),
         "device": device,
         "threads": threads,

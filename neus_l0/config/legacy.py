@@ -2,17 +2,40 @@
 
 from __future__ import annotations
 
-from neus_l0.config.schema import (
-    L0_KINDS,
-)
+import warnings
+
+from neus_l0.config.schema import L0_KINDS
 
 #: Old `render.*` sampler keys and the `sampler.*` keys they now mean (`_legacy_sampler`).
 LEGACY_SAMPLER_KEYS: dict[str, str] = {
     "point_weights": "placement",
     "weights_as_density": "as_density",
     "l0_pad": "pad",
-    "compile_sampler": "compile",
 }
+
+#: Keys that once did something and no longer do: read and dropped, with one warning.
+#: ``sampler.compile`` (was ``render.compile_sampler``) compiled the draw alone; the whole
+#: training step compiles with ``train.compile=true``, the draw included.
+RETIRED_KEYS: dict[str, tuple[str, ...]] = {
+    "render": ("compile_sampler",),
+    "sampler": ("compile",),
+}
+
+
+def _drop_retired(data: dict) -> dict:
+    """`data` without the `RETIRED_KEYS`; one warning names those it held."""
+    dropped = []
+    out = dict(data)
+    for block, keys in RETIRED_KEYS.items():
+        sub = out.get(block)
+        if isinstance(sub, dict) and any(k in sub for k in keys):
+            out[block] = {k: v for k, v in sub.items() if k not in keys}
+            dropped += [f"{block}.{k}" for k in keys if k in sub]
+    if dropped:
+        warnings.warn(f"{', '.join(dropped)}: no longer has an effect and is ignored "
+                      "(train.compile=true compiles the whole training step)", FutureWarning,
+                      stacklevel=4)
+    return out
 
 
 #: The fields of a sampler block dumped before `masses` existed (session 3's `SamplerConfig`).
@@ -32,6 +55,7 @@ def _legacy_sampler(data: dict) -> dict:
     ``masses``: it gets ``masses: interpolant``). A hand-written block (``{name: hvs,
     base_inv_s: 128}``) is not a dump and keeps the default.
     """
+    data = _drop_retired(data)
     stored = data.get("sampler")
     if (isinstance(stored, dict) and _DUMPED_SAMPLER_KEYS <= stored.keys()
             and "masses" not in stored):

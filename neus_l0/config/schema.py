@@ -8,7 +8,6 @@ old runs used in `neus_l0.config.legacy`.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 
 #: Sampler names, in the order `--help` and errors list them (the registry in
@@ -249,16 +248,13 @@ class RenderConfig:
     """The SfM points' box of a colmap scene without a hull (off by default)."""
 
 
-@dataclass(eq=False)
+@dataclass
 class SamplerConfig:
     """The fine-sample draw of NeuS's up-sampling (`neus_l0.sampling.upsample.build_sampler`).
 
     In YAML and on the command line a bare name stands for the block with that name and
     the defaults (``sampler: l0``, ``sampler=hvs``); ``sampler.pad=0.01`` sets one field. The
-    old keys ``render.point_weights``, ``render.weights_as_density``, ``render.l0_pad`` and
-    ``render.compile_sampler`` are still read, as ``sampler.placement``, ``as_density``, ``pad``
-    and ``compile`` (`LEGACY_SAMPLER_KEYS`). A `SamplerConfig` compares equal to its name and
-    prints as it, so code that expected the old string keeps working.
+    keys older configs and checkpoints used are read by `neus_l0.config.legacy`.
     """
 
     name: str = "l0"
@@ -299,27 +295,10 @@ class SamplerConfig:
     put more fine samples near the surface than `hvs` and than `interpolant`."""
     base_inv_s: float = 64.0
     """NeuS's fixed sharpness of the first up-sampling round; round i uses base * 2^i."""
-    compile: bool = False
-    """Deprecated, no effect (a one-line warning): `train.compile=true` compiles the whole
-    training step, the draw included. Kept so that configs and checkpoints that set it (or
-    the older `render.compile_sampler`) still load."""
 
     def l0_kind(self) -> str:
         """The L0 interpolation kind in effect (`kind`, else the name's)."""
         return self.kind or L0_KINDS.get(self.name, "exp")
-
-    def __str__(self) -> str:
-        return self.name
-
-    def __eq__(self, other: object) -> bool:
-        if isinstance(other, str):
-            return self.name == other
-        if isinstance(other, SamplerConfig):
-            return dataclasses.astuple(self) == dataclasses.astuple(other)
-        return NotImplemented
-
-    def __hash__(self) -> int:  # equal to its name, so it hashes like it
-        return hash(self.name)
 
 
 @dataclass

@@ -80,20 +80,6 @@ def random_rays(scene: Scene, n_rays: int, generator: torch.Generator | None = N
     return rays_at(scene, flat)
 
 
-def random_pixel_rays(scene: Scene, n_rays: int, pixels: torch.Tensor,
-                      generator: torch.Generator | None = None) -> dict:
-    """Like `random_rays`, but drawn uniformly from a set of pixels only.
-
-    Args:
-        pixels: (P,) int64 flat indices ``view * H * W + y * W + x`` on the scene's device
-            (P > 0).
-
-    Returns:
-        the dict of `random_rays`.
-    """
-    return rays_at(scene, pixels[random_picks(pixels.shape[0], n_rays, generator, scene.device)])
-
-
 def random_picks(n: int, n_rays: int, generator: torch.Generator | None,
                  device: torch.device) -> torch.Tensor:
     """(n_rays,) int64 indices drawn uniformly from [0, n) on the generator's device, moved

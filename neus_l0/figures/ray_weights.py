@@ -212,7 +212,7 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         sections = upsample_section_weights(t, sdf, pts.norm(dim=-1), sc.base_inv_s)
         w = sections.weights  # (1, N-1)
         per_round = max(1, r.n_importance // max(1, r.up_sample_steps))
-        l0 = build_sampler(dataclasses.replace(sc, name="l0", kind="", compile=False))
+        l0 = build_sampler(dataclasses.replace(sc, name="l0", kind=""))
         fine = {"hvs": build_sampler("hvs").draw(sections, per_round)[0] * s,
                 "l0": l0.draw(sections, per_round)[0] * s}
         if l0.masses == "sections":  # the section weights' shares, the interpolant inside
@@ -225,7 +225,7 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
             x, pdf = exp_interpolation(nodes[0].double(), wb)
         D = (t[0, 1:] - t[0, :-1]).double()
         hvs = w[0].double() / (w[0].double().sum() * D)
-        fine_all = render_rays(model, o, d, r, sampler)["z_fine"][0] if r.n_importance else \
+        fine_all = render_rays(model, o, d, r, sampler)["t_fine"][0] if r.n_importance else \
             torch.zeros(0)
         # the model's surface: first sign change of its SDF on a dense grid
         t_dense = torch.linspace(float(near), float(far), 4000)[None]  # (1, 4000)

@@ -224,11 +224,9 @@ class RenderOutput:
     active: Tensor
     s_val: Tensor
 
-    _OLD_NAMES = {"z_vals": "t", "z_fine": "t_fine", "mid_z_vals": "t_mid"}
-
     def __getitem__(self, key: str) -> Tensor:
-        """``out["color"]``; the old dict names (``z_vals``, ``z_fine``, ``mid_z_vals``)."""
-        return getattr(self, self._OLD_NAMES.get(key, key))
+        """``out["color"]``: a field by name."""
+        return getattr(self, key)
 
     def items(self) -> list[tuple[str, Tensor]]:
         """(name, tensor) pairs, as a dict's."""

@@ -24,7 +24,6 @@ Shapes: B rays, N samples per ray (sorted), n samples drawn per round.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Callable
 from typing import Protocol
 
@@ -197,26 +196,6 @@ def section_to_point_weights(z: Tensor, section_weights: Tensor, placement: str 
     raise ValueError(f"unknown point-weight placement {placement!r}")
 
 
-def merge_sorted(z: Tensor, new_z: Tensor, values: Tensor | None = None,
-                 new_values: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
-    """Concatenate and sort positions, carrying per-sample values along.
-
-    Args:
-        z: (B, N); new_z: (B, M); values: (B, N) or None; new_values: (B, M) or None.
-
-    Returns:
-        (B, N+M) sorted positions and the values in the same order (or None).
-    """
-    z_all, order = torch.sort(torch.cat([z, new_z], dim=-1), dim=-1)
-    if values is None or new_values is None:
-        return z_all, None
-    return z_all, torch.gather(torch.cat([values, new_values], dim=-1), -1, order)
-
-
-# ------------------------------------------------------------------------------------------
-# The samplers.
-
-
 class Sampler(Protocol):
     """The fine-sample draw of one up-sampling round.
 
@@ -279,13 +258,11 @@ class L0Sampler:
             interpolant only the place inside a section: `sample_l0_sections`; placement,
             as_density, blur and pad are then unused) or ``interpolant`` (the interpolant's
             mass decides each stretch's share, the paper's draw: `sample_l0`).
-        compile: deprecated, no effect (one warning): ``train.compile=true`` compiles the
-            whole training step, the draw included (see `warn_sampler_compile`).
     """
 
     def __init__(self, name: str = "l0", kind: str = "exp", pad: float = 0.0,
                  pad_mode: str = "relative", blur: bool = False, placement: str = "midpoint",
-                 as_density: bool = True, base_inv_s: float = 64.0, compile: bool = False,
+                 as_density: bool = True, base_inv_s: float = 64.0,
                  masses: str = "sections"):
         if masses not in MASSES:
             raise ValueError(f"unknown L0 masses {masses!r} (choose from {MASSES})")
@@ -298,8 +275,6 @@ class L0Sampler:
         self.pad_mode, self.blur = pad_mode, blur
         self.placement, self.as_density, self.masses = placement, as_density, masses
         self._draw = sample_l0
-        if compile:
-            warn_sampler_compile()
 
     def __repr__(self) -> str:
         return (f"L0Sampler(name={self.name!r}, kind={self.kind!r}, pad={self.pad}, "
@@ -342,27 +317,9 @@ class L0Sampler:
                           pad=self.pad, u=sections.quantiles(n_samples))
 
 
-_COMPILE_WARNED = False
-
-
-def warn_sampler_compile() -> None:
-    """Warn (once per process) that ``sampler.compile`` no longer does anything.
-
-    The draw compiled alone gave 1.05x on a CPU step and never ran on CUDA; the whole-step
-    compile (``train.compile=true``, `neus_l0.train.compile`) traces the draw with the rest
-    of the step in one graph, so the option is kept only so that old configs still load.
-    """
-    global _COMPILE_WARNED
-    if not _COMPILE_WARNED:
-        _COMPILE_WARNED = True
-        warnings.warn("sampler.compile (render.compile_sampler) is deprecated and has no "
-                      "effect: use train.compile=true to compile the whole training step",
-                      FutureWarning, stacklevel=3)
-
-
 def _l0(cfg: SamplerConfig) -> L0Sampler:
     return L0Sampler(cfg.name, cfg.l0_kind(), cfg.pad, cfg.pad_mode, cfg.blur, cfg.placement,
-                     cfg.as_density, cfg.base_inv_s, cfg.compile, cfg.masses)
+                     cfg.as_density, cfg.base_inv_s, cfg.masses)
 
 
 #: The one registry of sampler names: name -> builder from a `SamplerConfig`.
@@ -379,18 +336,11 @@ if tuple(REGISTRY) != SAMPLERS:  # the config's choice list and the registry are
 
 
 def build_sampler(cfg: SamplerConfig | str) -> Sampler:
-    """Build the sampler a `SamplerConfig` (or a bare name, with defaults) describes.
-
-    ``cfg.compile`` is deprecated and ignored (one warning; `warn_sampler_compile`).
-    """
+    """Build the sampler a `SamplerConfig` (or a bare name, with defaults) describes."""
     if isinstance(cfg, str):
-        from neus_l0.config.schema import SamplerConfig
-
         cfg = SamplerConfig(name=cfg)
     if cfg.name not in REGISTRY:
         raise ValueError(f"unknown sampler {cfg.name!r} (choose from {', '.join(SAMPLERS)})")
-    if cfg.compile:
-        warn_sampler_compile()
     return REGISTRY[cfg.name](cfg)
 
 
