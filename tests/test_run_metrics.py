@@ -32,3 +32,18 @@ def test_truncate_keeps_the_lines_up_to_the_resumed_iteration(tmp_path):
     metrics.truncate(tmp_path, 2)
     lines = metrics.metrics_path(tmp_path).read_text().splitlines()
     assert [json.loads(x)["iter"] for x in lines] == [1, 2]
+
+
+def test_old_runs_read_with_todays_keys(tmp_path):
+    """Runs before the rename logged ``s`` = 1 / s (the logistic's standard deviation)."""
+    metrics.metrics_path(tmp_path).write_text('{"iter": 1, "loss": 0.5, "s": 0.02}\n'
+                                              '{"iter": 2, "loss": 0.4, "s": 0}\n')
+    lines = metrics.log_lines(tmp_path)
+    assert lines[0]["inv_s"] == 50.0 and "s" not in lines[0]
+    assert lines[1]["inv_s"] != lines[1]["inv_s"]  # NaN: no sharpness from a zero
+
+
+def test_training_logs_the_sharpness_as_inv_s(tmp_path):
+    from neus_l0.train.step import METRIC_NAMES
+
+    assert "inv_s" in METRIC_NAMES and "s" not in METRIC_NAMES

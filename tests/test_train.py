@@ -95,6 +95,8 @@ def test_a_few_steps_lower_the_loss(scene, tmp_path, sampler):
     assert m[-1]["loss"] < 0.8 * m[0]["loss"], [r["loss"] for r in m]
     model, cfg2, info = load_trained_model(tmp_path / "run")
     assert cfg2.sampler.name == sampler and info["iteration"] == 30
+    # the logged sharpness is NeuS's inv_s (mean over the last 5 steps), not 1 / inv_s
+    assert m[-1]["inv_s"] == pytest.approx(float(model.variance.inv_s().reshape(())), rel=0.05)
     for p in model.parameters():
         assert torch.isfinite(p).all()
 

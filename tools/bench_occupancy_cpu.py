@@ -152,10 +152,10 @@ def main() -> None:
                 with_grid[v].append(timed_steps(model, frozen, scene, r["grid"], it,
                                                 args.steps, setup))
         step = min(base)
-        s_val = float(model.variance.inv_s().detach())
+        inv_s = float(model.variance.inv_s().detach())
         for v, r in grids.items():
             every = int(v.split(":")[1])
-            print(f"| {warm} | {s_val:.0f} | {v} | {1000 * r['update_s']:.0f} | "
+            print(f"| {warm} | {inv_s:.0f} | {v} | {1000 * r['update_s']:.0f} | "
                   f"{r['points']} | {r['update_s'] / every / step:.3f} | "
                   f"{min(with_grid[v]) / step:.3f} | {r['occ']:.3f} | {100 * r['kept']:.2f} % | "
                   f"{r['near']:.3f} ({near_sphere:.3f}) |", flush=True)

@@ -207,7 +207,8 @@ class RenderOutput:
         inside_sphere: (B, N) midpoints inside the unit sphere.
         active: (B,) rays that got samples (inactive rays have zero opacity inside
             [near, far]; a background model still renders them).
-        s_val: () 1 / s.
+        inv_s: () NeuS's sharpness s (the inverse standard deviation of its logistic
+            density).
     """
 
     color: Tensor
@@ -222,7 +223,7 @@ class RenderOutput:
     t_mid: Tensor
     inside_sphere: Tensor
     active: Tensor
-    s_val: Tensor
+    inv_s: Tensor
 
     def __getitem__(self, key: str) -> Tensor:
         """``out["color"]``: a field by name."""
@@ -377,7 +378,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         color=color, weight_sum=weight_sum, depth=depth, normal=normal, weights=weights,
         gradients=fg["gradients"], eikonal_mask=eikonal_mask, t=fg["t"],
         t_fine=fg["t_fine"], t_mid=fg["t_mid"], inside_sphere=inside, active=active,
-        s_val=(1.0 / fg["inv_s"]).reshape(()),
+        inv_s=fg["inv_s"].reshape(()),
     )
 
 

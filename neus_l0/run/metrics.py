@@ -9,14 +9,14 @@ One JSON object a line, appended as training goes:
   ``elapsed``.
 
 Reading skips lines that do not parse (a line cut by a crash), and renames the keys that
-older runs wrote (`OLD_KEYS`: ``s`` held 1/s under a misleading name), so every run folder
-reads the same way.
+older runs wrote (`OLD_KEYS`: their ``s`` held 1 / s, the logistic's standard deviation,
+under a name that read as the sharpness), so every run folder reads the same way.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from neus_l0.atomic import atomic_write_text
@@ -24,8 +24,10 @@ from neus_l0.atomic import atomic_write_text
 #: The metrics file's name inside a run folder.
 METRICS_FILE = "metrics.jsonl"
 
-#: Keys older runs wrote, and today's names for them.
-OLD_KEYS: dict[str, str] = {}
+#: Keys older runs wrote: old name -> (today's name, today's value from the old one).
+OLD_KEYS: dict[str, tuple[str, Callable[[float], float]]] = {
+    "s": ("inv_s", lambda v: 1.0 / v if v else float("nan")),
+}
 
 
 def metrics_path(run_dir: str | Path) -> Path:
@@ -41,9 +43,10 @@ def _parse(line: str) -> dict | None:
         return None
     if not isinstance(m, dict):
         return None
-    for old, new in OLD_KEYS.items():
+    for old, (new, convert) in OLD_KEYS.items():
         if old in m and new not in m:
-            m[new] = m.pop(old)
+            value = m.pop(old)
+            m[new] = convert(value) if isinstance(value, (int, float)) else value
     return m
 
 

@@ -95,7 +95,7 @@ class ProgressBar(TrainingCallback):
 
     def on_log(self, loop: TrainLoop, metrics: dict) -> None:
         self.bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}",
-                             s=f"{1.0 / metrics['s']:.1f}", its=f"{metrics['its_per_s']:.1f}")
+                             inv_s=f"{metrics['inv_s']:.1f}", its=f"{metrics['its_per_s']:.1f}")
 
     def on_end(self, loop: TrainLoop) -> None:
         self.bar.close()
@@ -185,7 +185,8 @@ class TensorBoard(TrainingCallback):
     """TensorBoard events in the run folder (``tensorboard --logdir RUN``): the losses,
     s, PSNR, learning rate, samples per ray, iterations per second, validation images."""
 
-    SCALARS = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "lr", "its_per_s")
+    SCALARS = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "inv_s", "lr",
+               "its_per_s")
 
     def __init__(self) -> None:
         self.logger = None
@@ -198,7 +199,6 @@ class TensorBoard(TrainingCallback):
 
     def on_log(self, loop: TrainLoop, metrics: dict) -> None:
         values = {k: metrics[k] for k in self.SCALARS if k in metrics}
-        values["s"] = 1.0 / metrics["s"] if metrics.get("s") else float("nan")
         rays = metrics.get("rays") or loop.rays
         values["samples_per_ray"] = metrics["samples"] / max(rays, 1)
         self.logger.scalars(loop.iteration, values)

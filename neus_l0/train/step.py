@@ -28,7 +28,7 @@ from neus_l0.sampling.upsample import build_sampler
 from neus_l0.train.losses import eikonal_indices, neus_loss
 from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
-METRIC_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "s", "samples")
+METRIC_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "inv_s", "samples")
 
 
 def make_optimizer(model: NeuSModel, cfg: Config) -> torch.optim.Adam:
@@ -176,7 +176,7 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
                        eikonal_idx=inputs.eikonal_idx)
     samples = out.active.sum() * out.t.shape[1]
-    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.s_val, samples]  # () each
+    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.inv_s, samples]  # () each
     return losses["loss"], torch.stack(values).detach().float()  # stack promotes the count
 
 
