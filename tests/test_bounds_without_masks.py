@@ -15,7 +15,7 @@ from neus_l0.bounds.points import PointBound
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import BackgroundConfig, OccupancyConfig, RenderConfig
 from neus_l0.fields.background import BackgroundNeRF
-from neus_l0.train.loop import build_loop
+from neus_l0.train.loop import build_run_state
 from neus_l0.train.step import update_occupancy
 
 
@@ -23,8 +23,8 @@ def test_scene_without_masks_gets_no_hull(tmp_path):
     scene = dataclasses.replace(sphere_scene(tmp_path / "s"), has_masks=False)
     cfg = load_config("womask", SMALL + ["model.background.hidden=16",
                                          "model.background.layers=1", "render.n_outside=4"])
-    loop = build_loop(scene, cfg, tmp_path / "run", torch.device("cpu"), resume=False)
-    assert loop.setup.bounds == () and loop.setup.pool is None
+    run = build_run_state(scene, cfg, tmp_path / "run", torch.device("cpu"), resume=False)
+    assert run.setup.bounds == () and run.setup.pool is None
     assert not (tmp_path / "run" / "hull.pt").exists()
     # views without masks carve nothing, even when asked to carve
     hull = carve_hull(torch.zeros_like(scene.masks), scene.intrinsics, scene.c2w,

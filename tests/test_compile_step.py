@@ -65,12 +65,12 @@ def test_compiled_training_equals_eager_and_compiles_at_most_thrice(tmp_path):
 def test_the_step_with_looked_up_spans_has_no_graph_break(tmp_path):
     """A run's step: rays from the pixel pool with their spans under the visual hull."""
     from neus_l0.bounds.pixel_pool import reachable_pixels
-    from neus_l0.train.loop import run_hull
+    from neus_l0.bounds.static import static_bounds
 
     scene = sphere_scene(tmp_path / "s")
     cfg = load_config("demo", ANALYTIC)
     model = make_model(cfg)
-    bounds = run_hull(scene, cfg, tmp_path / "run")
+    bounds = static_bounds(scene, cfg, tmp_path / "run")
     pool = reachable_pixels(scene, cfg.render, bounds)
     assert bounds and pool.spans is not None
     inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), pool)

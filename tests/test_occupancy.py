@@ -8,9 +8,9 @@ import torch
 from neus_l0.bounds.grid import cell_centres, dilate
 from neus_l0.bounds.occupancy import (
     OccupancyGrid,
+    grid_spans,
     occupancy_threshold,
     occupied_cells,
-    ray_spans,
 )
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import OccupancyConfig
@@ -132,7 +132,7 @@ def test_ray_spans_contain_every_occupied_cell_the_ray_crosses(seed):
     d = d / d.norm(dim=-1, keepdim=True)
     mid = -(o * d).sum(-1, keepdim=True)
     near, far = mid - 1.0, mid + 1.0
-    lo, hi, active = ray_spans(dilate(occ), o, d, near, far)
+    lo, hi, active = grid_spans(dilate(occ), o, d, near, far)
     assert (lo >= near).all() and (hi <= far).all() and (lo <= hi).all()
     # Brute force: 3000 points along each ray, in undilated occupied cells.
     t = near + (far - near) * torch.linspace(0, 1, 3000)  # (B, 3000)

@@ -63,11 +63,11 @@ def test_no_pool_with_a_background_model_or_without_culling(tmp_path):
 
 
 def test_the_pool_keeps_each_pixels_span_and_a_step_may_use_it(tmp_path):
-    """`PixelPool.spans` are `ray_spans` of the pixels' rays under the hull, and rendering
+    """`PixelPool.spans` are `packed_spans` of the pixels' rays under the hull, and rendering
     with them is rendering with the hull; without static bounds nothing is kept."""
     from test_rendering import sphere_model
 
-    from neus_l0.bounds.spans import ray_spans
+    from neus_l0.bounds.spans import packed_spans
     from neus_l0.data.rays import rays_at
     from neus_l0.render.volume import render_rays
 
@@ -79,7 +79,7 @@ def test_the_pool_keeps_each_pixels_span_and_a_step_may_use_it(tmp_path):
     pool = reachable_pixels(scene, cfg, (hull,))
     assert pool.spans.shape == (pool.pixels.numel(), 4)
     rays = rays_at(scene, pool.pixels)
-    span, active = ray_spans(rays["origins"], rays["dirs"], cfg, (hull,))
+    span, active = packed_spans(rays["origins"], rays["dirs"], cfg, (hull,))
     assert active.all()  # the pool's pixels all reach the hull
     # the pool's spans are those of the very rays a step draws (`rays_at`)
     assert torch.equal(pool.spans, span)

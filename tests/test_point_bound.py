@@ -103,7 +103,7 @@ def test_points_file_round_trip_and_too_few_points(tmp_path):
 def test_run_uses_the_box_only_when_asked_and_without_masks(tmp_path):
     from types import SimpleNamespace
 
-    from neus_l0.train.loop import run_hull
+    from neus_l0.bounds.static import static_bounds
 
     sm = np.diag([2.0, 2.0, 2.0, 1.0])
     sm[:3, 3] = [1.0, -2.0, 0.5]
@@ -112,9 +112,9 @@ def test_run_uses_the_box_only_when_asked_and_without_masks(tmp_path):
     scene.root.mkdir(parents=True)
     unit = _ellipsoid_surface(200, 6, radii=(0.5, 0.5, 0.5))
     write_points(scene.root / POINTS_FILE, unit * sm[0, 0] + sm[:3, 3], np.full(200, 3))
-    assert run_hull(scene, load_config("womask"), tmp_path / "run") == ()
+    assert static_bounds(scene, load_config("womask"), tmp_path / "run") == ()
     on = load_config("womask", ["render.point_bound.enabled=true"])
-    (box,) = run_hull(scene, on, tmp_path / "run")
+    (box,) = static_bounds(scene, on, tmp_path / "run")
     assert isinstance(box, PointBound) and box.n_points == 200
     assert not (tmp_path / "run" / "hull.pt").exists()
 

@@ -28,7 +28,7 @@ import torch
 from demo_scene import small_demo_scene
 
 from neus_l0.config.load import load_config
-from neus_l0.train.loop import build_loop
+from neus_l0.train.loop import build_run_state
 from neus_l0.train.step import train_step
 
 
@@ -65,13 +65,13 @@ def run(scene, conf: str, overrides: list[str], rays: int, mode: str, args,
     if mode == "compiled":
         extra += ["train.compile=true"]
     cfg = load_config(conf, overrides + extra)
-    loop = build_loop(scene, cfg, tmp / f"{rays}_{mode}", scene.device, resume=False)
-    setup = loop.setup  # the hull bounds, sampler, pixel pool and (compiled) step
+    run = build_run_state(scene, cfg, tmp / f"{rays}_{mode}", scene.device, resume=False)
+    setup = run.setup  # the hull bounds, sampler, pixel pool and (compiled) step
     it = [0]
 
     def step():
-        train_step(loop.model, loop.optimizer, loop.scene, cfg, it[0], loop.generator,
-                   occupancy=loop.occupancy, scaler=loop.scaler, setup=setup)
+        train_step(run.model, run.optimizer, run.scene, cfg, it[0], run.generator,
+                   occupancy=run.occupancy, scaler=run.scaler, setup=setup)
         it[0] += 1
 
     if scene.device.type == "cuda":

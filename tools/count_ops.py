@@ -39,10 +39,10 @@ from demo_scene import small_demo_scene
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from neus_l0.bounds.pixel_pool import reachable_pixels
+from neus_l0.bounds.static import static_bounds
 from neus_l0.config.load import load_config
 from neus_l0.fields.model import make_model
 from neus_l0.sampling.upsample import build_sampler
-from neus_l0.train.loop import run_hull
 from neus_l0.train.step import StepSetup, make_occupancy, make_optimizer, make_scaler, train_step
 
 #: "module file stem:function name" -> phase label, for `--phases`; nested matches join
@@ -143,7 +143,7 @@ def count_step_ops(conf: str, overrides: list[str], views: int = 4, width: int =
         setup = None
         if run_setup:
             setup = StepSetup(sampler=build_sampler(cfg.sampler))
-            setup.bounds = run_hull(scene, cfg, Path(tmp))
+            setup.bounds = static_bounds(scene, cfg, Path(tmp))
             setup.pool = reachable_pixels(scene, cfg.render, setup.bounds,
                                           background=model.background is not None)
     opt = make_optimizer(model, cfg)

@@ -20,7 +20,7 @@ evaluated. A cell that contains surface lies in a block that contains surface, s
 coarse test never discards it (same Lipschitz argument); the work drops from ``R^3`` to
 ``(R / block)^3`` plus the cells near the surface.
 
-Along a ray (`ray_spans`), the grid is dilated by one cell and looked up at points spaced
+Along a ray (`grid_spans`), the grid is dilated by one cell and looked up at points spaced
 at most one cell apart; the span from the first to the last occupied point, widened by one
 spacing at each end, contains every occupied cell the ray crosses (a point of the ray
 inside an occupied cell is within half a spacing, so within one cell in every axis, of a
@@ -109,7 +109,7 @@ def occupied_cells(sdf_fn: Callable[[Tensor], Tensor], resolution: int, inv_s: T
         return occ.reshape(R, R, R)
 
 
-def ray_spans(occ_dilated: Tensor, origins: Tensor, dirs: Tensor, near: Tensor,
+def grid_spans(occ_dilated: Tensor, origins: Tensor, dirs: Tensor, near: Tensor,
               far: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The part of each ray's [near, far] that crosses occupied cells.
 
@@ -167,15 +167,10 @@ class OccupancyGrid(torch.nn.Module):
         self.occ.copy_(self.counter > 0)
         self.occ_dilated.copy_(dilate(self.occ))
 
-    def spans(self, origins: Tensor, dirs: Tensor, near: Tensor,
-              far: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """`ray_spans` on this grid."""
-        return ray_spans(self.occ_dilated, origins, dirs, near, far)
-
     def ray_bounds(self, origins: Tensor, dirs: Tensor, near: Tensor,
                    far: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """`ray_spans` on this grid (the `neus_l0.bounds.spans.RayBounds` protocol)."""
-        return ray_spans(self.occ_dilated, origins, dirs, near, far)
+        """`grid_spans` on this grid (the `neus_l0.bounds.spans.RayBounds` protocol)."""
+        return grid_spans(self.occ_dilated, origins, dirs, near, far)
 
     def contains(self, points: Tensor) -> Tensor:
         """(..., 3) normalised points -> (...) bool: in a cell of the dilated grid (what

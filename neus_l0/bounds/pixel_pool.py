@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from neus_l0.bounds.spans import RayBounds, ray_spans
+from neus_l0.bounds.spans import RayBounds, packed_spans
 from neus_l0.config.schema import RenderConfig
 from neus_l0.data.rays import rays_at
 from neus_l0.data.scene import Scene
@@ -37,7 +37,7 @@ class PixelPool:
         pixels: (P,) int64 flat indices ``view * H * W + y * W + x``, on the scene's device.
         fraction: P over all pixels of the scene.
         spans: (P, 4) float32 each pixel's ray span (near, far, sphere entry, sphere exit;
-            `neus_l0.bounds.spans.ray_spans`) under the static bounds the pool was made with,
+            `neus_l0.bounds.spans.packed_spans`) under the static bounds the pool was made with,
             or None (no static bounds, or more than `MAX_SPAN_PIXELS` pixels). The bounds
             are static and a pixel's ray is fixed, so a step looks them up instead of
             computing them.
@@ -131,7 +131,7 @@ def reachable_pixels(scene: Scene, cfg: RenderConfig, bounds: Sequence[RayBounds
         for s in range(0, candidates.numel(), chunk):
             rows = candidates[s:s + chunk] + v * hw
             rays = rays_at(scene, rows)  # the very rays a step draws: its spans fit exactly
-            span, active = ray_spans(rays["origins"], rays["dirs"], cfg, bounds)
+            span, active = packed_spans(rays["origins"], rays["dirs"], cfg, bounds)
             found.append(rows[active])
             spans.append(span[active])
     pixels = torch.cat(found)

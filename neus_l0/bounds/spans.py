@@ -2,7 +2,7 @@
 
 `ray_bounds` starts from NeuS's [mid - 1, mid + 1] (no culling) or the unit sphere's chord,
 and narrows it by each `RayBounds` (visual hull, SfM point box, occupancy grid) in turn.
-`ray_spans` packs the result for rays whose bounds never change (a pixel's ray under the
+`packed_spans` packs the result for rays whose bounds never change (a pixel's ray under the
 visual hull), so a step gathers them instead of computing them.
 
 Shapes: B rays; `origins`, `dirs` (B, 3), `near`, `far` (B, 1).
@@ -59,7 +59,7 @@ def ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
     return _ray_bounds(origins, dirs, cfg, bounds)[:3]
 
 
-def ray_spans(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
+def packed_spans(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
               bounds: Sequence[RayBounds] = ()) -> tuple[Tensor, Tensor]:
     """What `render_rays` would compute of each ray's bounds, packed for reuse as its `span`.
 
@@ -79,7 +79,7 @@ def _ray_bounds(origins: Tensor, dirs: Tensor, cfg: RenderConfig,
     """`ray_bounds`, and (B, 1) where each ray enters and leaves the unit sphere (its `near`
     and `far` before `bounds` narrowed them; `near` and `far` themselves without culling).
 
-    `span` (B, 4) from `ray_spans` replaces the sphere and the static bounds it was made
+    `span` (B, 4) from `packed_spans` replaces the sphere and the static bounds it was made
     with (its rays are active); `bounds` then narrows it further."""
     if span is not None:
         near, far, entry, exit_ = span[:, :, None].unbind(1)  # (B, 1) each

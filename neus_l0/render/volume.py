@@ -332,7 +332,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
             whatever `perturb` says.
         create_graph: keep the graph of the SDF gradients (training: Eikonal loss).
         bounds: objects that narrow the rays' bounds (see `ray_bounds`).
-        span: (B, 4) the rays' bounds computed beforehand (`ray_spans`, e.g. kept by the
+        span: (B, 4) the rays' bounds computed beforehand (`packed_spans`, e.g. kept by the
             pixel pool) under culling and static bounds not in `bounds`: every ray is
             active, and `bounds` narrows it further.
 

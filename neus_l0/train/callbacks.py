@@ -2,18 +2,18 @@
 
 `neus_l0.train.loop.train` runs a short loop: restore, step, log, validate / checkpoint, stop.
 Everything else it does is one of these callbacks, each called at a named point of the
-loop with the loop's shared state (`neus_l0.train.state.TrainLoop`):
+loop with the run's state (`neus_l0.train.state.RunState`):
 
-* ``on_start(loop)``: once, before the first step;
-* ``on_log(loop, metrics)``: every ``train.log_every`` steps (and at the last), with the
+* ``on_start(run)``: once, before the first step;
+* ``on_log(run, metrics)``: every ``train.log_every`` steps (and at the last), with the
   metrics line being built; a callback may add numbers to it before `MetricsFile` writes
   it (order matters: the loop calls callbacks in list order);
-* ``after_step(loop)``: after every step;
-* ``on_end(loop)``: once, after the last step (also after a stop by time, `stop_at` or a
+* ``after_step(run)``: after every step;
+* ``on_end(run)``: once, after the last step (also after a stop by time, `stop_at` or a
   signal), before the final checkpoint.
 
 The clock (`neus_l0.train.state.Clock`) counts training time; callbacks whose work must not count
-(training hooks, snapshot checkpoints) run inside ``loop.clock.paused()``.
+(training hooks, snapshot checkpoints) run inside ``run.clock.paused()``.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pathlib import Path
 
 from neus_l0.run.checkpoints import checkpoint_path
 from neus_l0.run.metrics import append_line, snapshot_lines
-from neus_l0.train.state import TrainLoop
+from neus_l0.train.state import RunState
 
 #: A training hook: ``hook(iteration, model, scene, cfg) -> {name: number}``.
 Hook = Callable[..., dict]
@@ -39,16 +39,16 @@ def step_check(iteration: int, every: int) -> bool:
 class TrainingCallback:
     """Base class: override the points you need (all do nothing by default)."""
 
-    def on_start(self, loop: TrainLoop) -> None:
+    def on_start(self, run: RunState) -> None:
         """Before the first step."""
 
-    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+    def on_log(self, run: RunState, metrics: dict) -> None:
         """At a log step, with the metrics line being built."""
 
-    def after_step(self, loop: TrainLoop) -> None:
+    def after_step(self, run: RunState) -> None:
         """After every step."""
 
-    def on_end(self, loop: TrainLoop) -> None:
+    def on_end(self, run: RunState) -> None:
         """After the last step, before the final checkpoint."""
 
 
@@ -62,19 +62,19 @@ class HookCallback(TrainingCallback):
     def __init__(self, hooks: Sequence[Hook]) -> None:
         self.hooks = list(hooks)
 
-    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+    def on_log(self, run: RunState, metrics: dict) -> None:
         if not self.hooks:
             return
-        with loop.clock.paused(), loop.evaluating():
+        with run.clock.paused(), run.evaluating():
             for hook in self.hooks:
-                metrics.update(hook(loop.iteration, loop.model, loop.scene, loop.cfg))
+                metrics.update(hook(run.iteration, run.model, run.scene, run.cfg))
 
 
 class MetricsFile(TrainingCallback):
     """Appends each metrics line to ``RUN/metrics.jsonl``."""
 
-    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
-        append_line(loop.run_dir, metrics)
+    def on_log(self, run: RunState, metrics: dict) -> None:
+        append_line(run.run_dir, metrics)
 
 
 class ProgressBar(TrainingCallback):
@@ -84,20 +84,20 @@ class ProgressBar(TrainingCallback):
         self.enabled = enabled
         self.bar = None
 
-    def on_start(self, loop: TrainLoop) -> None:
+    def on_start(self, run: RunState) -> None:
         from tqdm import tqdm
 
-        self.bar = tqdm(total=loop.cfg.train.iters, initial=loop.iteration,
+        self.bar = tqdm(total=run.cfg.train.iters, initial=run.iteration,
                         disable=not self.enabled, dynamic_ncols=True, desc="train")
 
-    def after_step(self, loop: TrainLoop) -> None:
+    def after_step(self, run: RunState) -> None:
         self.bar.update(1)
 
-    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+    def on_log(self, run: RunState, metrics: dict) -> None:
         self.bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}",
                              inv_s=f"{metrics['inv_s']:.1f}", its=f"{metrics['its_per_s']:.1f}")
 
-    def on_end(self, loop: TrainLoop) -> None:
+    def on_end(self, run: RunState) -> None:
         self.bar.close()
 
 
@@ -108,27 +108,27 @@ class Validation(TrainingCallback):
     def __init__(self, sinks: Sequence[Callable[[int, str, object], None]] = ()) -> None:
         self.sinks = list(sinks)
 
-    def after_step(self, loop: TrainLoop) -> None:
-        every = loop.cfg.train.val_every
-        if not step_check(loop.iteration, every):
+    def after_step(self, run: RunState) -> None:
+        every = run.cfg.train.val_every
+        if not step_check(run.iteration, every):
             return
         from neus_l0.train.validation import validation_image, write_png
 
-        view = (loop.iteration // every) % loop.scene.n_views
-        with loop.evaluating():
-            img = validation_image(loop.model, loop.scene, loop.cfg, view, loop.iteration,
-                                   bounds=loop.bounds, sampler=loop.setup.sampler)
-        write_png(loop.run_dir / "validation" / f"{loop.iteration:07d}_v{view:03d}.png", img)
+        view = (run.iteration // every) % run.scene.n_views
+        with run.evaluating():
+            img = validation_image(run.model, run.scene, run.cfg, view, run.iteration,
+                                   bounds=run.bounds, sampler=run.setup.sampler)
+        write_png(run.run_dir / "validation" / f"{run.iteration:07d}_v{view:03d}.png", img)
         for sink in self.sinks:
-            sink(loop.iteration, f"validation/v{view:03d}", img)
+            sink(run.iteration, f"validation/v{view:03d}", img)
 
 
 class Checkpoints(TrainingCallback):
     """Every ``train.save_every`` steps, an atomic checkpoint."""
 
-    def after_step(self, loop: TrainLoop) -> None:
-        if step_check(loop.iteration, loop.cfg.train.save_every):
-            loop.save()
+    def after_step(self, run: RunState) -> None:
+        if step_check(run.iteration, run.cfg.train.save_every):
+            run.save()
 
 
 class Snapshots(TrainingCallback):
@@ -147,37 +147,37 @@ class Snapshots(TrainingCallback):
             raise ValueError(f"snapshots {list(marks)}: marks must be finite seconds >= 0")
         self.taken: list[tuple[float, int, Path]] = []
 
-    def on_start(self, loop: TrainLoop) -> None:
+    def on_start(self, run: RunState) -> None:
         if self.marks:
-            loop.protected |= {checkpoint_path(loop.run_dir, int(m["iter"]))
-                               for m in snapshot_lines(loop.run_dir)}
-            loop.protect_snapshots = True
+            run.protected |= {checkpoint_path(run.run_dir, int(m["iter"]))
+                               for m in snapshot_lines(run.run_dir)}
+            run.protect_snapshots = True
 
-    def after_step(self, loop: TrainLoop) -> None:
-        if len(self.taken) < len(self.marks) and loop.clock.elapsed() >= self.marks[
+    def after_step(self, run: RunState) -> None:
+        if len(self.taken) < len(self.marks) and run.clock.elapsed() >= self.marks[
                 len(self.taken)]:
-            loop.wait_for_device()
-            self._serve(loop, final=False)
+            run.wait_for_device()
+            self._serve(run, final=False)
 
-    def on_end(self, loop: TrainLoop) -> None:
+    def on_end(self, run: RunState) -> None:
         if len(self.taken) < len(self.marks):
-            loop.wait_for_device()
-            self._serve(loop, final=True)
+            run.wait_for_device()
+            self._serve(run, final=True)
 
-    def _serve(self, loop: TrainLoop, final: bool) -> None:
+    def _serve(self, run: RunState, final: bool) -> None:
         """Serve every pending mark up to now (all of them when `final`)."""
-        elapsed = loop.clock.elapsed()
+        elapsed = run.clock.elapsed()
         # the final checkpoint is written (and counted) with or without snapshots
-        with contextlib.nullcontext() if final else loop.clock.paused():
-            path = checkpoint_path(loop.run_dir, loop.iteration)
-            loop.protected.add(path)  # before writing, so that its own pruning keeps it
-            if loop.last_checkpoint != path:
-                loop.save()
+        with contextlib.nullcontext() if final else run.clock.paused():
+            path = checkpoint_path(run.run_dir, run.iteration)
+            run.protected.add(path)  # before writing, so that its own pruning keeps it
+            if run.last_checkpoint != path:
+                run.save()
             while len(self.taken) < len(self.marks) and (
                     final or self.marks[len(self.taken)] <= elapsed):
                 mark = self.marks[len(self.taken)]
-                self.taken.append((mark, loop.iteration, path))
-                append_line(loop.run_dir, {"snapshot_s": mark, "iter": loop.iteration,
+                self.taken.append((mark, run.iteration, path))
+                append_line(run.run_dir, {"snapshot_s": mark, "iter": run.iteration,
                                            "elapsed": elapsed})
 
 
@@ -191,22 +191,22 @@ class TensorBoard(TrainingCallback):
     def __init__(self) -> None:
         self.logger = None
 
-    def on_start(self, loop: TrainLoop) -> None:
+    def on_start(self, run: RunState) -> None:
         from neus_l0.train.tensorboard import TensorBoardLogger
 
-        self.logger = TensorBoardLogger(loop.run_dir, purge_step=loop.iteration or None)
+        self.logger = TensorBoardLogger(run.run_dir, purge_step=run.iteration or None)
         _ = self.logger.writer  # import and open now: setup, not training time
 
-    def on_log(self, loop: TrainLoop, metrics: dict) -> None:
+    def on_log(self, run: RunState, metrics: dict) -> None:
         values = {k: metrics[k] for k in self.SCALARS if k in metrics}
-        rays = metrics.get("rays") or loop.rays
+        rays = metrics.get("rays") or run.rays
         values["samples_per_ray"] = metrics["samples"] / max(rays, 1)
-        self.logger.scalars(loop.iteration, values)
+        self.logger.scalars(run.iteration, values)
 
     def image(self, step: int, tag: str, rgb) -> None:
         """A `Validation` sink."""
         if self.logger is not None:
             self.logger.image(step, tag, rgb)
 
-    def on_end(self, loop: TrainLoop) -> None:
+    def on_end(self, run: RunState) -> None:
         self.logger.close()

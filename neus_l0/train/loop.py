@@ -28,7 +28,7 @@ from torch import Tensor
 
 from neus_l0.atomic import atomic_write_json, atomic_write_text
 from neus_l0.bounds.pixel_pool import reachable_pixels
-from neus_l0.bounds.points import PointBound
+from neus_l0.bounds.static import static_bounds
 from neus_l0.config.load import dump_config
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
@@ -57,7 +57,7 @@ from neus_l0.train.callbacks import (
 )
 from neus_l0.train.compile import compiled_step
 from neus_l0.train.signals import StopOnSignal
-from neus_l0.train.state import Clock, TrainLoop
+from neus_l0.train.state import Clock, RunState
 from neus_l0.train.step import (
     METRIC_NAMES,
     make_occupancy,
@@ -105,8 +105,8 @@ def _check_scene(scene: Scene, cfg: Config) -> None:
                           "scene has no mask/ folder (use --conf womask or train.mask_weight=0)")
 
 
-def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
-               resume: bool) -> TrainLoop:
+def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
+                    resume: bool) -> RunState:
     """Networks, optimiser and generator, restored from the newest checkpoint on resume.
 
     Raises:
@@ -123,65 +123,37 @@ def build_loop(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
     _check_scene(scene, cfg)
     scene = scene.to(device)
     model = make_model(cfg, device)
-    loop = TrainLoop(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
+    run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
                      optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
                      generator=torch.Generator(device=device),
                      occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
-    loop.generator.manual_seed(cfg.train.seed)
-    loop.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
-    loop.setup.bounds = run_hull(scene, cfg, run_dir)
-    loop.setup.pool = reachable_pixels(scene, cfg.render, loop.setup.bounds,
+    run.generator.manual_seed(cfg.train.seed)
+    run.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
+    run.setup.bounds = static_bounds(scene, cfg, run_dir)
+    run.setup.pool = reachable_pixels(scene, cfg.render, run.setup.bounds,
                                        background=model.background is not None)
-    loop.setup.compiled = compiled_step(render_and_loss, cfg, device)
+    run.setup.compiled = compiled_step(render_and_loss, cfg, device)
     if state is not None:
-        loop.iteration, rays = restore_training(ckpt, state, model, loop.optimizer,
-                                                loop.generator, loop.scaler, loop.occupancy)
-        loop.rays = rays or loop.rays
-        loop.last_checkpoint = ckpt
-    return loop
+        run.iteration, rays = restore_training(ckpt, state, model, run.optimizer,
+                                                run.generator, run.scaler, run.occupancy)
+        run.rays = rays or run.rays
+        run.last_checkpoint = ckpt
+    return run
 
 
-def run_hull(scene: Scene, cfg: Config, run_dir: Path) -> tuple:
-    """The run's static bounds: its visual hull, or without one the SfM point box.
-
-    The hull exists only when the scene has masks and `render.hull.enabled` (views without
-    masks carve nothing): carved at the first start and saved as ``RUN/hull.pt``; a resume
-    loads that file. Each warning of the carving (a suspicious mask, named) is one line on
-    stderr. Without a hull, `render.point_bound.enabled` and a ``sparse_points.npz`` in the
-    scene folder (`neus-l0 colmap`) give the points' box (`neus_l0.bounds.points`); else ().
-    """
-    import sys
-
-    h = cfg.render.hull
-    if not (h.enabled and scene.has_masks):
-        p = cfg.render.point_bound
-        box = PointBound.for_scene(scene, p.margin, p.min_views) if p.enabled else None
-        if box is None:
-            return ()
-        print(f"neus-l0: {box.describe()}", file=sys.stderr, flush=True)
-        return (box,)
-    from neus_l0.bounds.hull import hull_for_run
-
-    run_dir.mkdir(parents=True, exist_ok=True)
-    hull = hull_for_run(scene, run_dir / "hull.pt", h.resolution, h.margin_px)
-    for line in (hull.report.warnings if hull.report is not None else []):
-        print(f"neus-l0: visual hull: {line}", file=sys.stderr, flush=True)
-    return (hull,)
-
-
-def _write_run_files(loop: TrainLoop) -> None:
+def _write_run_files(run: RunState) -> None:
     """``config.yaml`` and ``run.json``; the metrics cut back to the resumed iteration."""
-    loop.run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(loop.run_dir / "config.yaml", dump_config(loop.cfg))
-    scene = loop.scene
-    atomic_write_json(loop.run_dir / "run.json", {
+    run.run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(run.run_dir / "config.yaml", dump_config(run.cfg))
+    scene = run.scene
+    atomic_write_json(run.run_dir / "run.json", {
         "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
         "n_views": scene.n_views, "height": scene.height, "width": scene.width,
     })
-    truncate_metrics(loop.run_dir, loop.iteration)
+    truncate_metrics(run.run_dir, run.iteration)
 
 
-def read_metrics(loop: TrainLoop, acc: Tensor, steps: int, last: Tensor,
+def metrics_line(run: RunState, acc: Tensor, steps: int, last: Tensor,
                  window: tuple[float, int]) -> dict:
     """The metrics line of a log step: means over the window's `steps` steps.
 
@@ -192,15 +164,15 @@ def read_metrics(loop: TrainLoop, acc: Tensor, steps: int, last: Tensor,
         NeusL0Error: a non-finite mean (training diverged).
     """
     *values, step_samples = torch.cat([acc / steps, last[-1:]]).tolist()
-    now = loop.clock.elapsed()
+    now = run.clock.elapsed()
     metrics = dict(zip(METRIC_NAMES, values, strict=True))
-    metrics.update(rays=loop.rays)
-    loop.rays = next_batch_size(loop.rays, step_samples, loop.cfg)
-    metrics.update(iter=loop.iteration, lr=loop.optimizer.param_groups[0]["lr"],
-                   its_per_s=(loop.iteration - window[1]) / max(now - window[0], 1e-9),
+    metrics.update(rays=run.rays)
+    run.rays = next_batch_size(run.rays, step_samples, run.cfg)
+    metrics.update(iter=run.iteration, lr=run.optimizer.param_groups[0]["lr"],
+                   its_per_s=(run.iteration - window[1]) / max(now - window[0], 1e-9),
                    elapsed=now)
     if not all(math.isfinite(v) for v in values):
-        raise NeusL0Error(f"{loop.run_dir}: training diverged at iteration {loop.iteration} "
+        raise NeusL0Error(f"{run.run_dir}: training diverged at iteration {run.iteration} "
                           f"(loss {metrics['loss']}); resume from the last checkpoint with a "
                           "lower train.lr")
     return metrics
@@ -255,55 +227,55 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     if Path(run_dir).exists() and not Path(run_dir).is_dir():
         raise NeusL0Error(f"{run_dir}: is a file, not a run folder (choose another --out)")
     with RunLock(run_dir), StopOnSignal() as stop:
-        loop = build_loop(scene, cfg, Path(run_dir), torch.device(device), resume)
-        return _run_loop(loop, own + list(callbacks), stop_at, stop)
+        run = build_run_state(scene, cfg, Path(run_dir), torch.device(device), resume)
+        return _run_loop(run, own + list(callbacks), stop_at, stop)
 
 
-def _run_loop(loop: TrainLoop, cbs: list[TrainingCallback], stop_at: int | None,
+def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
               stop: StopOnSignal) -> TrainResult:
     """The loop itself: restore is done; step, log, validate / checkpoint, stop."""
-    cfg = loop.cfg
-    _write_run_files(loop)
+    cfg = run.cfg
+    _write_run_files(run)
     t = cfg.train
-    acc = torch.zeros(len(METRIC_NAMES), device=loop.device)
+    acc = torch.zeros(len(METRIC_NAMES), device=run.device)
     steps, stopped_early = 0, False
     for cb in cbs:
-        cb.on_start(loop)
+        cb.on_start(run)
     # The budget (train.max_seconds) counts the loop from here: steps, logs, validation
     # renders and checkpoints, not the setup above.
-    loop.clock = Clock()
-    window = (0.0, loop.iteration)
-    loop.model.train()
-    while loop.iteration < t.iters:
+    run.clock = Clock()
+    window = (0.0, run.iteration)
+    run.model.train()
+    while run.iteration < t.iters:
         # step
-        step = train_step(loop.model, loop.optimizer, loop.scene, cfg, loop.iteration,
-                          loop.generator, occupancy=loop.occupancy, scaler=loop.scaler,
-                          batch_size=loop.rays, setup=loop.setup)
+        step = train_step(run.model, run.optimizer, run.scene, cfg, run.iteration,
+                          run.generator, occupancy=run.occupancy, scaler=run.scaler,
+                          batch_size=run.rays, setup=run.setup)
         acc += step
         steps += 1
-        loop.iteration += 1
+        run.iteration += 1
         # log
-        if loop.iteration % t.log_every == 0 or loop.iteration == t.iters:
-            metrics = read_metrics(loop, acc, steps, step, window)
+        if run.iteration % t.log_every == 0 or run.iteration == t.iters:
+            metrics = metrics_line(run, acc, steps, step, window)
             for cb in cbs:
-                cb.on_log(loop, metrics)
+                cb.on_log(run, metrics)
             acc.zero_()
-            steps, window = 0, (loop.clock.elapsed(), loop.iteration)
+            steps, window = 0, (run.clock.elapsed(), run.iteration)
         # validate, checkpoint, snapshots
         for cb in cbs:
-            cb.after_step(loop)
+            cb.after_step(run)
         # stop
-        over_time = t.max_seconds and loop.clock.elapsed() > t.max_seconds
-        if (over_time or stop.requested or (stop_at is not None and loop.iteration >= stop_at)) \
-                and loop.iteration < t.iters:
+        over_time = t.max_seconds and run.clock.elapsed() > t.max_seconds
+        if (over_time or stop.requested or (stop_at is not None and run.iteration >= stop_at)) \
+                and run.iteration < t.iters:
             stopped_early = True
             break
     for cb in cbs:
-        cb.on_end(loop)
-    if loop.last_checkpoint != checkpoint_path(loop.run_dir, loop.iteration):
-        loop.save()
+        cb.on_end(run)
+    if run.last_checkpoint != checkpoint_path(run.run_dir, run.iteration):
+        run.save()
     snaps = next((cb.taken for cb in cbs if isinstance(cb, Snapshots)), [])
-    return TrainResult(loop.run_dir, loop.iteration, loop.last_checkpoint,
-                       last_log_line(loop.run_dir), loop.clock.elapsed(), stopped_early, snaps,
+    return TrainResult(run.run_dir, run.iteration, run.last_checkpoint,
+                       last_log_line(run.run_dir), run.clock.elapsed(), stopped_early, snaps,
                        signal=stop.signal_name if stop.requested else None,
                        exit_code=stop.exit_code)

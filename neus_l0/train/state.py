@@ -51,8 +51,8 @@ class Clock:
 
 
 @dataclasses.dataclass
-class TrainLoop:
-    """What the loop and its callbacks share (built by `train`)."""
+class RunState:
+    """The run's state, which the loop and its callbacks share (built by `build_run_state`)."""
 
     cfg: Config
     run_dir: Path
@@ -93,7 +93,7 @@ class TrainLoop:
         """Let the queued steps finish (so that they count as training time)."""
         synchronize(self.device)
 
-    def state(self) -> dict:
+    def checkpoint_state(self) -> dict:
         """The checkpoint of the current iteration (see `neus_l0.run.checkpoints`)."""
         state = {
             "iteration": self.iteration,
@@ -116,8 +116,8 @@ class TrainLoop:
         path = checkpoint_path(self.run_dir, self.iteration)
         keep = self.cfg.train.keep_checkpoints
         if not self.protect_snapshots:
-            self.last_checkpoint = save_checkpoint(path, self.state(), keep=keep)
+            self.last_checkpoint = save_checkpoint(path, self.checkpoint_state(), keep=keep)
         else:
-            self.last_checkpoint = save_checkpoint(path, self.state(), keep=0)
+            self.last_checkpoint = save_checkpoint(path, self.checkpoint_state(), keep=0)
             prune_checkpoints(self.run_dir, keep, self.protected | {path})
         return self.last_checkpoint
