@@ -3,7 +3,7 @@
 Usage (from the repository root):
     python tools/bench_compile_step.py [CONF] [override ...]     # default CONF: demo
 
-Builds the test suite's in-memory sphere scene (6 views, 80x60; tests/test_train.py), then
+Renders the small built-in `demo` scene (6 views, 80x60; `_common.small_demo_scene`), then
 for eager and compiled in turn: the model and optimiser of CONF with
 ``model.sdf.gradient=analytic``, one first step (timed: the compiled one compiles), then 29
 timed steps with one torch thread. Prints the first step's seconds, the median step in ms,
@@ -13,25 +13,24 @@ and the largest difference of the two loss curves.
 from __future__ import annotations
 
 import sys
+import tempfile
 import time
-from pathlib import Path
 
 import torch
+from _common import small_demo_scene
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from test_train import sphere_scene  # noqa: E402
-
-from neus_l0.config.load import load_config  # noqa: E402
-from neus_l0.fields.model import make_model  # noqa: E402
-from neus_l0.train.compile import CompiledStep  # noqa: E402
-from neus_l0.train.step import StepSetup, make_optimizer, render_and_loss, train_step  # noqa: E402
+from neus_l0.config.load import load_config
+from neus_l0.fields.model import make_model
+from neus_l0.train.compile import CompiledStep
+from neus_l0.train.step import StepSetup, make_optimizer, render_and_loss, train_step
 
 
 def main() -> None:
     torch.set_num_threads(1)
     conf = sys.argv[1] if len(sys.argv) > 1 else "demo"
     overrides = sys.argv[2:]
-    scene = sphere_scene("/tmp/bench_compile_scene", H=60, W=80)
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = small_demo_scene(tmp, views=6, width=80, height=60)
     curves = {}
     for compiled in (False, True):
         cfg = load_config(conf, ["model.sdf.gradient=analytic", "train.warm_up=0"] + overrides)

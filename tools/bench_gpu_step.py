@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 import torch
-from demo_scene import small_demo_scene
+from _common import add_scene_args, small_demo_scene
 
 from neus_l0.config.load import load_config
 from neus_l0.train.loop import build_run_state
@@ -97,9 +97,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--conf", default="fast")
     ap.add_argument("--rays", default="1024,4096")
-    ap.add_argument("--views", type=int, default=49)
-    ap.add_argument("--width", type=int, default=400)
-    ap.add_argument("--height", type=int, default=300)
+    add_scene_args(ap, views=49, width=400, height=300)
     ap.add_argument("--warm", type=int, default=30)
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--modes", default="eager,compiled")

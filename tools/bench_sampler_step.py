@@ -21,7 +21,7 @@ import tempfile
 import time
 
 import torch
-from demo_scene import small_demo_scene
+from _common import add_scene_args, small_demo_scene
 
 from neus_l0.config.load import load_config
 from neus_l0.fields.model import make_model
@@ -52,9 +52,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--warm", type=int, default=3)
-    ap.add_argument("--views", type=int, default=4)
-    ap.add_argument("--width", type=int, default=40)
-    ap.add_argument("--height", type=int, default=30)
+    add_scene_args(ap, views=4, width=40, height=30)
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args()
     torch.set_num_threads(1)

@@ -24,8 +24,8 @@ import tempfile
 import time
 
 import torch
+from _common import add_scene_args, device_sync, small_demo_scene
 from count_ops import OpCounter
-from demo_scene import small_demo_scene
 
 from neus_l0.config.load import load_config
 from neus_l0.fields.model import make_model
@@ -35,9 +35,7 @@ from neus_l0.train.step import make_occupancy, make_optimizer, make_scaler, trai
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--conf", default="demo", help="built-in config name or YAML path")
-    ap.add_argument("--views", type=int, default=8, help="views of the synthetic scene")
-    ap.add_argument("--width", type=int, default=100, help="image width")
-    ap.add_argument("--height", type=int, default=75, help="image height")
+    add_scene_args(ap, views=8, width=100, height=75)
     ap.add_argument("--warm", type=int, default=150, help="training steps before timing")
     ap.add_argument("--steps", type=int, default=20, help="timed steps per round and method")
     ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds")
@@ -50,7 +48,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    sync = device_sync(device)
     with tempfile.TemporaryDirectory() as tmp:
         scene = small_demo_scene(tmp, args.views, args.width, args.height, device)
 

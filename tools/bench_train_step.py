@@ -37,7 +37,7 @@ import tempfile
 import time
 
 import torch
-from demo_scene import small_demo_scene
+from _common import add_scene_args, device_sync, small_demo_scene
 
 from neus_l0.config.load import load_config
 from neus_l0.fields.model import make_model
@@ -76,9 +76,7 @@ def variants(device: str, compile_: bool) -> dict[str, list[str]]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--conf", default="demo")
-    ap.add_argument("--views", type=int, default=8)
-    ap.add_argument("--width", type=int, default=100)
-    ap.add_argument("--height", type=int, default=75)
+    add_scene_args(ap, views=8, width=100, height=75)
     ap.add_argument("--warm", type=int, default=150)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--rounds", type=int, default=3)
@@ -91,7 +89,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
-    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    sync = device_sync(device)
 
     with tempfile.TemporaryDirectory() as tmp:
         scene = small_demo_scene(tmp, args.views, args.width, args.height, device)

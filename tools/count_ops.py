@@ -29,13 +29,14 @@ from __future__ import annotations
 import argparse
 import collections
 import contextlib
+import json
 import re
 import sys
 import tempfile
 from pathlib import Path
 
 import torch
-from demo_scene import small_demo_scene
+from _common import add_scene_args, small_demo_scene
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from neus_l0.bounds.pixel_pool import reachable_pixels
@@ -164,9 +165,7 @@ def count_step_ops(conf: str, overrides: list[str], views: int = 4, width: int =
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--conf", default="demo", help="built-in config name or YAML path")
-    ap.add_argument("--views", type=int, default=4, help="views of the synthetic scene")
-    ap.add_argument("--width", type=int, default=40, help="image width of the scene")
-    ap.add_argument("--height", type=int, default=30, help="image height of the scene")
+    add_scene_args(ap, views=4, width=40, height=30)
     ap.add_argument("--warm", type=int, default=3, help="untimed steps before the count")
     ap.add_argument("--iteration", type=int, default=None,
                     help="iteration number of the counted step (default: --warm)")
@@ -175,6 +174,8 @@ def main() -> None:
                     help="also count the ops of each phase of the step")
     ap.add_argument("--run-setup", action="store_true",
                     help="count the step a run takes: with its visual hull and pixel pool")
+    ap.add_argument("--json", action="store_true",
+                    help="print one JSON object {total, torch, ops, phases} instead of tables")
     ap.add_argument("overrides", nargs="*", help="dotted key=value config overrides")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -182,6 +183,10 @@ def main() -> None:
                             args.warm, args.iteration, args.phases, args.run_setup)
     counts, phases = result if args.phases else (result, None)
     total = sum(counts.values())
+    if args.json:
+        print(json.dumps({"total": total, "torch": torch.__version__, "ops": dict(counts),
+                          "phases": dict(phases) if phases is not None else None}))
+        return
     setup = " (run setup: hull, pixel pool)" if args.run_setup else ""
     print(f"# conf {args.conf} {' '.join(args.overrides)}{setup}: {total} aten ops in one "
           f"step (torch {torch.__version__})")

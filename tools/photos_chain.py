@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import add_scene_args
 
 
 def train_and_mesh(scene_dir: Path, run_dir: Path, conf: str, overrides: list[str],
@@ -141,9 +142,7 @@ def main() -> None:
     p.add_argument("--max-seconds", type=float, default=150.0)
     p.add_argument("--resolution", type=int, default=128)
     p.add_argument("--threads", type=int, default=1, help="torch threads for training")
-    p.add_argument("--views", type=int, default=30)
-    p.add_argument("--width", type=int, default=400)
-    p.add_argument("--height", type=int, default=300)
+    add_scene_args(p, views=30, width=400, height=300)
     p.add_argument("overrides", nargs="*", help="config overrides (key=value)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
