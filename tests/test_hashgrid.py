@@ -265,7 +265,7 @@ def test_hashgrid_config_errors():
     with pytest.raises(ConfigError, match="log2_hashmap_size"):
         load_config("demo", ["model.sdf.encoding.kind=hashgrid",
                              "model.sdf.encoding.log2_hashmap_size=40"])
-    with pytest.raises(ConfigError, match="unknown encoding"):
+    with pytest.raises(ConfigError, match="unknown choice"):
         load_config("demo", ["model.sdf.encoding.kind=hash"])
 
 

@@ -10,9 +10,6 @@ from typing import Any
 
 from neus_l0.config.schema import (
     L0_KINDS,
-    PAD_MODES,
-    PLACEMENTS,
-    SAMPLERS,
     BackgroundConfig,
     ColorConfig,
     EncodingConfig,
@@ -27,7 +24,7 @@ from neus_l0.config.schema import (
 from neus_l0.errors import ConfigError
 
 
-def _validate(obj: Any, prefix: str) -> None:
+def validate(obj: Any, prefix: str) -> None:
     """Range checks of values whose types are right but whose meaning is not."""
     def bad(name: str, why: str) -> ConfigError:
         return ConfigError(f"{prefix}{name}: {why}")
@@ -35,8 +32,6 @@ def _validate(obj: Any, prefix: str) -> None:
     if isinstance(obj, SamplerConfig):
         _validate_sampler(obj, bad)
     if isinstance(obj, EncodingConfig):
-        if obj.kind not in ("frequency", "identity", "hashgrid"):
-            raise bad("kind", f"unknown encoding {obj.kind!r} (frequency, identity, hashgrid)")
         if obj.n_freqs < 0:
             raise bad("n_freqs", "must be >= 0")
         if obj.kind == "hashgrid":
@@ -61,12 +56,6 @@ def _validate(obj: Any, prefix: str) -> None:
             raise bad("resolution", "must be >= 8 cells per axis")
         if not obj.margin_px >= 0:
             raise bad("margin_px", "must be >= 0 pixels")
-    if isinstance(obj, SDFConfig) and obj.gradient not in (
-            "autograd", "analytic", "finite-difference"):
-        raise bad("gradient", f"unknown method {obj.gradient!r} (autograd, analytic, "
-                  "finite-difference)")
-    if isinstance(obj, ColorConfig) and obj.mode not in ("idr", "no_view_dir", "no_normal"):
-        raise bad("mode", f"unknown mode {obj.mode!r} (idr, no_view_dir, no_normal)")
     if isinstance(obj, RenderConfig):
         if obj.n_samples < 2:
             raise bad("n_samples", "must be >= 2")
@@ -84,8 +73,6 @@ def _validate(obj: Any, prefix: str) -> None:
         if obj.margin < 1.0 or obj.widths < 0.0:
             raise bad("margin", "margin must be >= 1 and widths >= 0")
     if isinstance(obj, TrainConfig):
-        if obj.amp not in ("off", "bf16", "fp16"):
-            raise bad("amp", f"unknown choice {obj.amp!r} (off, bf16, fp16)")
         if not 0.0 < obj.eikonal_fraction <= 1.0:
             raise bad("eikonal_fraction", "must be in (0, 1]")
         for name in ("iters", "batch_size", "log_every"):
@@ -101,22 +88,14 @@ def _validate(obj: Any, prefix: str) -> None:
 
 
 def _validate_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]) -> None:
-    """Range checks of a `SamplerConfig` (names from the one list, `schema.SAMPLERS`)."""
-    if obj.name not in SAMPLERS:
-        raise bad("name", f"unknown sampler {obj.name!r} (choose from {', '.join(SAMPLERS)})")
+    """Range checks of a `SamplerConfig` (its choices are checked by their `Literal` types)."""
     if obj.kind:
         if obj.name not in L0_KINDS:
             raise bad("kind", f"sampler {obj.name} has no interpolation kind (only "
                       f"{', '.join(L0_KINDS)} do)")
-        if obj.kind not in ("exp", "inverse", "linear"):
-            raise bad("kind", f"unknown kind {obj.kind!r} (exp, inverse, linear)")
         if obj.name != "l0" and obj.kind != L0_KINDS[obj.name]:
             raise bad("kind", f"{obj.kind} contradicts sampler {obj.name} (set name: l0 and "
                       f"the kind, or the name alone)")
-    if obj.pad_mode not in PAD_MODES:
-        raise bad("pad_mode", f"unknown choice {obj.pad_mode!r} ({', '.join(PAD_MODES)})")
-    if obj.masses not in ("interpolant", "sections"):
-        raise bad("masses", f"unknown choice {obj.masses!r} (interpolant, sections)")
     if obj.masses == "sections" and obj.name in L0_KINDS:
         for key, unused in (("blur", obj.blur), ("pad", obj.pad > 0),
                             ("placement", obj.placement != "midpoint"),
@@ -124,9 +103,6 @@ def _validate_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]
             if unused:
                 raise bad(key, "applies only to the interpolant's draw; add "
                           "sampler.masses=interpolant")
-    if obj.placement not in PLACEMENTS:
-        raise bad("placement", f"unknown choice {obj.placement!r} ({', '.join(PLACEMENTS)}; "
-                  "formerly render.point_weights)")
     if not obj.pad >= 0.0:
         raise bad("pad", "must be >= 0")
     if not obj.base_inv_s > 0.0:

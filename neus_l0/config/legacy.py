@@ -6,12 +6,15 @@ import warnings
 
 from neus_l0.config.schema import L0_KINDS
 
-#: Old `render.*` sampler keys and the `sampler.*` keys they now mean (`_legacy_sampler`).
+#: Old `render.*` sampler keys and the `sampler.*` keys they now mean (`read_legacy`).
 LEGACY_SAMPLER_KEYS: dict[str, str] = {
     "point_weights": "placement",
     "weights_as_density": "as_density",
     "l0_pad": "pad",
 }
+#: Today's dotted keys and the names they had, for errors about a value given the old way.
+FORMER_NAMES: dict[str, str] = {f"sampler.{new}": f"render.{old}"
+                                for old, new in LEGACY_SAMPLER_KEYS.items()}
 
 #: Keys that once did something and no longer do: read and dropped, with one warning.
 #: ``sampler.compile`` (was ``render.compile_sampler``) compiled the draw alone; the whole
@@ -43,7 +46,7 @@ _DUMPED_SAMPLER_KEYS = frozenset({"name", "kind", "pad", "pad_mode", "blur", "pl
                                   "as_density", "base_inv_s"})
 
 
-def _legacy_sampler(data: dict) -> dict:
+def read_legacy(data: dict) -> dict:
     """Move the old `render.*` sampler keys (`LEGACY_SAMPLER_KEYS`) into the sampler block.
 
     The one place where old configs and checkpoints are read: ``render.l0_pad`` becomes

@@ -17,8 +17,8 @@ from typing import Any
 
 import yaml
 
-from neus_l0.config.checks import _validate
-from neus_l0.config.legacy import _legacy_sampler
+from neus_l0.config.checks import validate
+from neus_l0.config.legacy import FORMER_NAMES, read_legacy
 from neus_l0.config.schema import (
     Config,
     SamplerConfig,
@@ -76,6 +76,13 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
             except ConfigError as exc:
                 errors.append(str(exc))
         raise ConfigError(errors[0] if errors else f"{key}: bad value {value!r}")
+    if origin is typing.Literal:
+        choices = typing.get_args(tp)
+        if isinstance(value, str) and value in choices:
+            return value
+        named = ", ".join(c for c in choices if c)
+        former = f"; formerly {FORMER_NAMES[key]}" if key in FORMER_NAMES else ""
+        raise ConfigError(f"{key}: unknown choice {value!r} (choose from {named}{former})")
     if origin is list:
         (item_tp,) = typing.get_args(tp)
         if isinstance(value, tuple):
@@ -112,7 +119,7 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
 def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
     """Build dataclass `cls` from a nested mapping; unknown keys raise `ConfigError`."""
     if cls is Config:
-        data = _legacy_sampler(data)
+        data = read_legacy(data)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = [k for k in data if k not in names]
@@ -127,7 +134,7 @@ def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
         else:
             kwargs[f.name] = getattr(base, f.name)
     obj = cls(**kwargs)
-    _validate(obj, prefix)
+    validate(obj, prefix)
     return obj
 
 

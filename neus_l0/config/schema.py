@@ -9,25 +9,43 @@ old runs used in `neus_l0.config.legacy`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal, get_args
+
+# The choice lists: each field with a fixed set of values is typed with one of these, and
+# `neus_l0.config.load` refuses any other value, naming the key and the choices.
 
 #: Sampler names, in the order `--help` and errors list them (the registry in
 #: `neus_l0.sampling.upsample` checks at import that it builds exactly these).
-SAMPLERS = ("hvs", "l0", "l0-inverse", "l0-linear", "neus-exact")
+SamplerName = Literal["hvs", "l0", "l0-inverse", "l0-linear", "neus-exact"]
+SAMPLERS: tuple[str, ...] = get_args(SamplerName)
+#: The L0 interpolation kinds ("" in a config: the sampler name's kind).
+L0Kind = Literal["", "exp", "inverse", "linear"]
 #: The L0 sampler names and the interpolation kind each uses by default.
 L0_KINDS: dict[str, str] = {"l0": "exp", "l0-inverse": "inverse", "l0-linear": "linear"}
 #: How the maxblur pad of the L0 samplers is scaled (see `L0Sampler`).
-PAD_MODES = ("absolute", "relative", "none")
+PadMode = Literal["absolute", "relative", "none"]
+PAD_MODES: tuple[str, ...] = get_args(PadMode)
 #: Where section weights are placed as point weights (see `section_to_point_weights`).
-PLACEMENTS = ("midpoint", "endpoint")
+Placement = Literal["midpoint", "endpoint"]
+PLACEMENTS: tuple[str, ...] = get_args(Placement)
 #: Where the L0 samplers' section shares come from (see `L0Sampler`).
-MASSES = ("interpolant", "sections")
+Masses = Literal["interpolant", "sections"]
+MASSES: tuple[str, ...] = get_args(Masses)
+#: Input encodings (`neus_l0.fields.encodings`).
+EncodingKind = Literal["frequency", "identity", "hashgrid"]
+#: How the SDF's spatial gradient is computed (`neus_l0.fields.sdf`).
+GradientMethod = Literal["autograd", "analytic", "finite-difference"]
+#: The colour network's inputs.
+ColorMode = Literal["idr", "no_view_dir", "no_normal"]
+#: Mixed precision of the networks.
+AmpMode = Literal["off", "bf16", "fp16"]
 
 
 @dataclass
 class EncodingConfig:
     """An input encoding (see `neus_l0.fields.encodings.build_encoding`)."""
 
-    kind: str = "frequency"
+    kind: EncodingKind = "frequency"
     """Encoding kind: `frequency` (NeRF positional encoding), `identity` or `hashgrid`
     (Instant-NGP multiresolution hash grid; 3-D inputs only, used for the SDF network)."""
     n_freqs: int = 6
@@ -85,7 +103,7 @@ class SDFConfig:
     """Sharpness of the softplus activation."""
     weight_norm: bool = True
     """Weight normalisation on every linear layer."""
-    gradient: str = "autograd"
+    gradient: GradientMethod = "autograd"
     """How the SDF's spatial gradient (the Eikonal term's and the colour network's normal)
     is computed (`neus_l0.fields.sdf`): `autograd` (torch.autograd.grad; in training a
     double backward), `analytic` (the hash grid's / frequency encoding's derivative in
@@ -102,7 +120,7 @@ class ColorConfig:
     """Width of the hidden layers."""
     layers: int = 4
     """Number of hidden layers."""
-    mode: str = "idr"
+    mode: ColorMode = "idr"
     """Inputs: `idr` (point, view dir, normal, feature), `no_view_dir` or `no_normal`."""
     view_encoding: EncodingConfig = field(default_factory=lambda: EncodingConfig(n_freqs=4))
     """Encoding of the view direction."""
@@ -257,17 +275,17 @@ class SamplerConfig:
     keys older configs and checkpoints used are read by `neus_l0.config.legacy`.
     """
 
-    name: str = "l0"
+    name: SamplerName = "l0"
     """`hvs` (NeuS's piecewise constant), `l0` (L0 exponential, the default), `l0-inverse`,
     `l0-linear` or `neus-exact` (the exact CDF of NeuS's opacity inside each section)."""
-    kind: str = ""
+    kind: L0Kind = ""
     """L0 interpolation kind, `exp`, `inverse` or `linear` ("": the name's, e.g. `l0-linear`
     -> `linear`); only the L0 samplers have one."""
     pad: float = 0.0
     """Pad of the L0 samplers' point weights (maxblur's, or added directly without blur; see
     `pad_mode`). The authors' code uses 0.001, the paper 0.01. Default 0: in the oracle study
     (docs/BENCHMARKS.md) every pad only moved fine samples away from the surface."""
-    pad_mode: str = "relative"
+    pad_mode: PadMode = "relative"
     """How `pad` scales: `absolute` (added to the point weights as they are: NeuS's section
     weights sum to at most 1, so its share of the draw grows as a ray's weight shrinks),
     `relative` (times the ray's mean point weight: at most pad / (1 + pad) of the draw,
@@ -277,7 +295,7 @@ class SamplerConfig:
     in the oracle study maxblur, not the pad, is what put fewer fine samples near the surface
     than `hvs` (0.68x within 0.01 at 16+16; without it 1.12x); `render.l0_pad` in an old
     config or checkpoint turns it back on (with an absolute pad), as the old code ran."""
-    placement: str = "midpoint"
+    placement: Placement = "midpoint"
     """How NeuS's section weights become point weights for the L0 samplers: `midpoint`
     (weights at section midpoints) or `endpoint` (average of the two adjacent sections at
     each sample). Was `render.point_weights`."""
@@ -285,7 +303,7 @@ class SamplerConfig:
     """Divide each section weight by its length (times the mean length) before the L0
     interpolation, so that point values are densities even when sections are uneven. Was
     `render.weights_as_density`."""
-    masses: str = "sections"
+    masses: Masses = "sections"
     """Where the L0 samplers' section shares come from: `sections` (the default: each of
     NeuS's sections keeps its own weight's share, as `hvs` draws, and the L0 interpolant of
     the section densities only places the samples inside it:
@@ -345,7 +363,7 @@ class TrainConfig:
     """Wall-clock budget of the training loop (steps, logging, validation, checkpoints; not
     the setup before it nor the time of training hooks): stop and checkpoint after this many
     seconds (0: no budget)."""
-    amp: str = "off"
+    amp: AmpMode = "off"
     """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
     scaler and fused Adam); ignored on the CPU."""
     compile: bool = False
