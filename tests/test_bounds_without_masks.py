@@ -6,8 +6,6 @@ from __future__ import annotations
 import dataclasses
 
 import torch
-from test_rendering import sphere_model
-from test_train import SMALL, sphere_scene
 
 from neus_l0.bounds.hull import carve_hull
 from neus_l0.bounds.occupancy import OccupancyGrid
@@ -19,9 +17,9 @@ from neus_l0.train.loop import build_run_state
 from neus_l0.train.step import update_occupancy
 
 
-def test_scene_without_masks_gets_no_hull(tmp_path):
+def test_scene_without_masks_gets_no_hull(small, sphere_scene, tmp_path):
     scene = dataclasses.replace(sphere_scene(tmp_path / "s"), has_masks=False)
-    cfg = load_config("womask", SMALL + ["model.background.hidden=16",
+    cfg = load_config("womask", small + ["model.background.hidden=16",
                                          "model.background.layers=1", "render.n_outside=4"])
     run = build_run_state(scene, cfg, tmp_path / "run", torch.device("cpu"), resume=False)
     assert run.setup.bounds == () and run.setup.pool is None
@@ -32,7 +30,7 @@ def test_scene_without_masks_gets_no_hull(tmp_path):
     assert hull.fraction_of_sphere() == 1.0
 
 
-def test_grid_is_not_updated_before_its_start():
+def test_grid_is_not_updated_before_its_start(sphere_model):
     model = sphere_model()
     cfg = load_config("demo", ["render.occupancy.enabled=true",
                                "render.occupancy.resolution=32",
@@ -70,7 +68,8 @@ def test_coarse_rare_grid_never_empties_a_cell_of_a_moving_sphere():
     assert float(grid.fraction_occupied()) < 0.2  # and it does empty the rest
 
 
-def test_background_samples_start_outside_the_sphere_when_a_bound_narrows_rays(monkeypatch):
+def test_background_samples_start_outside_the_sphere_when_a_bound_narrows_rays(sphere_model,
+                                                                               monkeypatch):
     import neus_l0.render.volume as rendering
     from neus_l0.bounds.sphere import sphere_chord
 

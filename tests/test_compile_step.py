@@ -2,7 +2,6 @@
 
 import pytest
 import torch
-from test_train import SMALL, sphere_scene
 
 from neus_l0.config.load import load_config
 from neus_l0.errors import ConfigError
@@ -13,14 +12,14 @@ from neus_l0.train.step import draw_step_inputs, render_and_loss
 ANALYTIC = ["model.sdf.gradient=analytic"]
 
 
-@pytest.mark.parametrize("conf,extra", [
-    ("demo", []),
-    ("demo", SMALL + ["render.perturb=false", "train.eikonal_fraction=0.5"]),
-    ("demo", ["sampler=hvs", "train.anneal_end=100"]),
-])
-def test_the_step_has_no_graph_break(tmp_path, conf, extra):
+@pytest.mark.parametrize("conf,with_small,extra", [
+    ("demo", False, []),
+    ("demo", True, ["render.perturb=false", "train.eikonal_fraction=0.5"]),
+    ("demo", False, ["sampler=hvs", "train.anneal_end=100"]),
+], ids=["demo-extra0", "demo-extra1", "demo-extra2"])
+def test_the_step_has_no_graph_break(small, sphere_scene, tmp_path, conf, with_small, extra):
     scene = sphere_scene(tmp_path / "s")
-    cfg = load_config(conf, ANALYTIC + extra)
+    cfg = load_config(conf, ANALYTIC + (small if with_small else []) + extra)
     model = make_model(cfg)
     inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), None)
     torch._dynamo.reset()
@@ -29,19 +28,19 @@ def test_the_step_has_no_graph_break(tmp_path, conf, extra):
     assert ex.graph_count == 1
 
 
-def test_compile_needs_a_gradient_without_double_backward(tmp_path):
-    cfg = load_config("demo", SMALL + ["train.compile=true", "model.sdf.gradient=autograd",
+def test_compile_needs_a_gradient_without_double_backward(small, sphere_scene, tmp_path):
+    cfg = load_config("demo", small + ["train.compile=true", "model.sdf.gradient=autograd",
                                        "train.iters=2"])
     with pytest.raises(ConfigError, match="model.sdf.gradient=analytic"):
         train(sphere_scene(tmp_path / "s"), cfg, tmp_path / "run", progress=False)
 
 
 @pytest.mark.slow
-def test_compiled_training_equals_eager_and_compiles_at_most_thrice(tmp_path):
+def test_compiled_training_equals_eager_and_compiles_at_most_thrice(small, sphere_scene, tmp_path):
     from torch._dynamo.utils import counters
 
     scene = sphere_scene(tmp_path / "s")
-    base = SMALL + ANALYTIC + ["train.iters=50", "train.log_every=1",
+    base = small + ANALYTIC + ["train.iters=50", "train.log_every=1",
                                "train.tensorboard=false"]
     eager = train(scene, load_config("demo", base), tmp_path / "eager", progress=False)
     torch._dynamo.reset()
@@ -62,7 +61,7 @@ def test_compiled_training_equals_eager_and_compiles_at_most_thrice(tmp_path):
     assert (diff.abs() / torch.tensor(curve["eager"])).max() < 1e-2  # ... and curve
 
 
-def test_the_step_with_looked_up_spans_has_no_graph_break(tmp_path):
+def test_the_step_with_looked_up_spans_has_no_graph_break(sphere_scene, tmp_path):
     """A run's step: rays from the pixel pool with their spans under the visual hull."""
     from neus_l0.bounds.pixel_pool import reachable_pixels
     from neus_l0.bounds.static import static_bounds

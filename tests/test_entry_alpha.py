@@ -1,7 +1,6 @@
 """The opacity of the stretch a narrowed ray skips (`section_alpha`'s `skipped`)."""
 
 import torch
-from test_rendering import AnalyticSphere, sphere_model  # noqa: F401
 
 from neus_l0.config.schema import RenderConfig
 from neus_l0.render.volume import render_rays, section_alpha
@@ -49,7 +48,7 @@ def test_closed_form_and_limits():
     assert torch.equal(a[3], plain[3])  # nothing skipped
 
 
-def test_a_ray_entering_inside_the_object_is_opaque():
+def test_a_ray_entering_inside_the_object_is_opaque(sphere_model):
     model = sphere_model()  # |x| - 0.5
     o = torch.tensor([[-3.0, 0.0, 0.0], [-3.0, 0.9, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])

@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from test_train import SMALL, sphere_scene
 
 from neus_l0.cli import main
 from neus_l0.config.load import load_config
@@ -147,11 +146,11 @@ def test_estimate_covers_the_measured_sparse_peak():
 # --- a tiny real run with two checkpoints ---------------------------------------------------
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
+def tiny_run(small_overrides, sphere_scene, tmp_path_factory):
     from neus_l0.train.loop import train
 
     root = tmp_path_factory.mktemp("faults")
-    cfg = load_config("demo", SMALL + ["train.iters=2", "train.save_every=1"])
+    cfg = load_config("demo", [*small_overrides, "train.iters=2", "train.save_every=1"])
     train(sphere_scene(root / "scene"), cfg, root / "run", progress=False)
     assert [p.name for p in list_checkpoints(root / "run")] == ["ckpt_0000001.pt",
                                                                 "ckpt_0000002.pt"]

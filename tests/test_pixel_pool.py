@@ -1,7 +1,6 @@
 """The pixel pool: exactly the pixels whose rays can reach the surface, found cheaply."""
 
 import torch
-from test_train import sphere_scene
 
 from neus_l0.bounds.hull import hull_from_scene
 from neus_l0.bounds.pixel_pool import hull_silhouette, reachable_pixels
@@ -19,7 +18,7 @@ def _brute_force(scene, cfg, bounds):
     return torch.cat(found)
 
 
-def test_the_pool_is_every_pixel_that_reaches_the_sphere_and_the_hull(tmp_path):
+def test_the_pool_is_every_pixel_that_reaches_the_sphere_and_the_hull(sphere_scene, tmp_path):
     scene = sphere_scene(tmp_path / "s", n_views=5, H=40, W=50, radius=0.4)
     hull = hull_from_scene(scene, 64, 2.0)
     cfg = RenderConfig(cull_outside_sphere=True)
@@ -36,7 +35,7 @@ def test_the_pool_is_every_pixel_that_reaches_the_sphere_and_the_hull(tmp_path):
     assert torch.isin(fg, with_hull.pixels).all()
 
 
-def test_the_silhouette_covers_every_ray_that_meets_a_voxel(tmp_path):
+def test_the_silhouette_covers_every_ray_that_meets_a_voxel(sphere_scene, tmp_path):
     scene = sphere_scene(tmp_path / "s", n_views=4, H=30, W=40)
     g = torch.Generator().manual_seed(0)
     c = -1.0 + (torch.arange(32) + 0.5) / 16
@@ -55,17 +54,17 @@ def test_the_silhouette_covers_every_ray_that_meets_a_voxel(tmp_path):
         assert sil.float().mean() < 0.9  # and it is not everything
 
 
-def test_no_pool_with_a_background_model_or_without_culling(tmp_path):
+def test_no_pool_with_a_background_model_or_without_culling(sphere_scene, tmp_path):
     scene = sphere_scene(tmp_path / "s")
     assert reachable_pixels(scene, RenderConfig()) is None
     assert reachable_pixels(scene, RenderConfig(cull_outside_sphere=True),
                             background=True) is None
 
 
-def test_the_pool_keeps_each_pixels_span_and_a_step_may_use_it(tmp_path):
+def test_the_pool_keeps_each_pixels_span_and_a_step_may_use_it(sphere_model, sphere_scene,
+                                                               tmp_path):
     """`PixelPool.spans` are `packed_spans` of the pixels' rays under the hull, and rendering
     with them is rendering with the hull; without static bounds nothing is kept."""
-    from test_rendering import sphere_model
 
     from neus_l0.bounds.spans import packed_spans
     from neus_l0.data.rays import rays_at

@@ -21,31 +21,7 @@ from neus_l0.sampling.upsample import (
 )
 from neus_l0.train.losses import eikonal
 
-RADIUS = 0.5
-
-
-class AnalyticSphere(nn.Module):
-    """SDF network stand-in: |x - c| - r with a zero feature vector."""
-
-    feature_dim = 8
-
-    def __init__(self, radius=RADIUS, centre=(0.0, 0.0, 0.0)):
-        super().__init__()
-        self.radius = radius
-        self.register_buffer("centre", torch.tensor(centre))
-        self.dummy = nn.Parameter(torch.zeros(()))
-
-    def forward(self, x):
-        d = (x - self.centre).norm(dim=-1, keepdim=True) - self.radius + 0.0 * self.dummy
-        return torch.cat([d, torch.zeros(x.shape[0], self.feature_dim, device=x.device)], -1)
-
-    def sdf(self, x):
-        return self.forward(x)[:, :1]
-
-
-def sphere_model(s_init=0.6):
-    return NeuSModel(AnalyticSphere(), ColorNetwork(ColorConfig(hidden=16, layers=2), 8),
-                     SingleVariance(VarianceConfig(init=s_init)))
+RADIUS = 0.5  # of the `sphere_model` fixture's sphere (tests/conftest.py)
 
 
 def rays_at_sphere(n=256, seed=0):
@@ -143,7 +119,7 @@ def test_unknown_sampler():
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)
-def test_fine_samples_cluster_at_an_analytic_sphere(sampler):
+def test_fine_samples_cluster_at_an_analytic_sphere(sphere_model, sampler):
     torch.manual_seed(0)
     model = sphere_model()
     cfg = RenderConfig()
@@ -166,7 +142,7 @@ def test_fine_samples_cluster_at_an_analytic_sphere(sampler):
     assert (cos < 0).all() and cos.mean() < -0.8
 
 
-def test_l0_midpoint_default_at_least_as_tight_as_endpoint():
+def test_l0_midpoint_default_at_least_as_tight_as_endpoint(sphere_model):
     """The documented default: midpoints cluster the fine samples no worse than endpoints."""
     model = sphere_model()
     o, d, hit, t_hit = rays_at_sphere(256)
@@ -203,7 +179,7 @@ def test_render_rays_gradients_and_background():
     assert model.background.rgb.weight.grad.abs().sum() > 0
 
 
-def test_render_is_deterministic_given_the_generator():
+def test_render_is_deterministic_given_the_generator(sphere_model):
     model = sphere_model()
     o, d, _, _ = rays_at_sphere(16)
     outs = [render_rays(model, o, d, RenderConfig(), "l0", perturb=True,
@@ -211,7 +187,7 @@ def test_render_is_deterministic_given_the_generator():
     assert torch.equal(outs[0], outs[1])
 
 
-def test_render_image_shapes():
+def test_render_image_shapes(sphere_model):
     model = sphere_model()
     o, d, _, _ = rays_at_sphere(12)
     out = render_image(model, o.reshape(3, 4, 3), d.reshape(3, 4, 3),
@@ -224,21 +200,26 @@ def test_render_image_shapes():
 # Skipping work: sphere culling and the occupancy grid.
 
 
-class CountingSphere(AnalyticSphere):
-    """`AnalyticSphere` that counts the points it is evaluated at."""
+@pytest.fixture
+def counting_model(analytic_sphere):
+    """A factory like `sphere_model`, whose sphere counts the points it is evaluated at."""
 
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.points = 0
+    class CountingSphere(analytic_sphere):
+        """`AnalyticSphere` that counts the points it is evaluated at."""
 
-    def forward(self, x):
-        self.points += x.shape[0]
-        return super().forward(x)
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.points = 0
 
+        def forward(self, x):
+            self.points += x.shape[0]
+            return super().forward(x)
 
-def counting_model(s_init=0.6):
-    return NeuSModel(CountingSphere(), ColorNetwork(ColorConfig(hidden=16, layers=2), 8),
-                     SingleVariance(VarianceConfig(init=s_init)))
+    def make(s_init=0.6):
+        return NeuSModel(CountingSphere(), ColorNetwork(ColorConfig(hidden=16, layers=2), 8),
+                         SingleVariance(VarianceConfig(init=s_init)))
+
+    return make
 
 
 def sphere_grid(model, resolution=64):
@@ -251,7 +232,7 @@ def sphere_grid(model, resolution=64):
 
 
 @pytest.mark.parametrize("sampler", ["hvs", "l0"])
-def test_grid_gives_the_same_render_on_rays_that_hit(sampler):
+def test_grid_gives_the_same_render_on_rays_that_hit(sphere_model, sampler):
     torch.manual_seed(0)
     model = sphere_model()
     o, d, hit, t_hit = rays_at_sphere(256)
@@ -275,7 +256,7 @@ def test_grid_gives_the_same_render_on_rays_that_hit(sampler):
         assert (ref["t"][hit].min(dim=-1).values < t_hit[hit] - 0.4).all()
 
 
-def test_rays_that_cross_no_occupied_cell_do_no_sdf_work():
+def test_rays_that_cross_no_occupied_cell_do_no_sdf_work(counting_model):
     model = counting_model()
     grid = sphere_grid(model)
     # rays through the unit sphere that pass the r = 0.5 sphere at distance >= 0.8
@@ -305,7 +286,7 @@ def test_rays_that_cross_no_occupied_cell_do_no_sdf_work():
     assert model.sdf.points == 0
 
 
-def test_rays_missing_the_sphere_get_no_samples():
+def test_rays_missing_the_sphere_get_no_samples(counting_model):
     model = counting_model()
     o = torch.tensor([[-3.0, 1.2, 0.0], [0.0, 0.0, 3.0], [-3.0, 0.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # miss, behind, hit
@@ -323,7 +304,7 @@ def test_rays_missing_the_sphere_get_no_samples():
     assert z.min() >= 2.0 - 1e-5 and z.max() <= 4.0 + 1e-5
 
 
-def test_no_background_network_with_masks():
+def test_no_background_network_with_masks(sphere_model):
     from neus_l0.config.load import load_config
     from neus_l0.fields.model import make_model
 

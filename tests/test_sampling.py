@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 import torch
-from sampling_reference import (
+from reference_sampling import (
     l0_cdf,
     mass,
     sample_l0_ref,
     sample_pdf_ref,
 )
-from sampling_reference import (
+from reference_sampling import (
     maxblur as maxblur_ref,
 )
 
@@ -95,7 +95,7 @@ def test_piece_mass_closed_forms():
 @pytest.mark.parametrize("kind", ["exp", "inverse", "linear"])
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_piece_inverse_cdf_against_root_finding(kind, dtype):
-    from sampling_reference import invert_piece
+    from reference_sampling import invert_piece
 
     rng = np.random.default_rng(1)
     pairs = [(1.0, 1.0), (0.4, 0.4 * (1 + 1e-7)), (0.4, 0.4 * (1 + 2e-3)), (1.0, 3.0),
@@ -160,7 +160,7 @@ def test_kinds_coincide_as_b_tends_to_a():
 
 @pytest.mark.parametrize("kind", ["exp", "inverse"])
 def test_series_and_closed_forms_are_exact_around_the_threshold(kind):
-    from sampling_reference import invert_piece
+    from reference_sampling import invert_piece
 
     from neus_l0.sampling.kernels import _series_threshold
 

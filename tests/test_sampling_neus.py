@@ -9,7 +9,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from neus_section_reference import invert_section, sample_neus_ref
+from reference_neus_sections import invert_section, sample_neus_ref
 
 from neus_l0.sampling.kernels import neus_section_inverse_cdf, quantiles, sample_neus_sections
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_sampling_stress import _check, rays
+from strategies import check_samples, rays
 
 from neus_l0.sampling.kernels import KINDS, sample_l0_sections, sample_pdf
 
@@ -109,7 +109,7 @@ def test_outputs_are_always_finite_sorted_and_in_range(data, n, kind, det, dtype
         w = torch.tensor(w_np[:, :-1], dtype=dtype)
     out = sample_l0_sections(z, w, n, kind, det=det,
                              generator=torch.Generator().manual_seed(seed))
-    _check(out, z, n)
+    check_samples(out, z, n)
 
 
 @pytest.mark.parametrize("kind", KINDS)

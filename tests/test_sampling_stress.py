@@ -7,38 +7,12 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from sampling_reference import sample_l0_ref
+from reference_sampling import sample_l0_ref
+from strategies import WEIGHT, check_samples, rays
 
 from neus_l0.sampling.kernels import KINDS, maxblur, sample_l0, sample_pdf
 
 DTYPES = [torch.float32, torch.float64]
-
-# Weights from every regime: zeros, tiny, huge, non-finite, negative.
-WEIGHT = st.one_of(
-    st.just(0.0), st.just(float("nan")), st.just(float("inf")), st.just(-float("inf")),
-    st.floats(-1.0, 0.0), st.floats(1e-30, 1.0), st.floats(1e-45, 1e-30),
-    st.floats(1.0, 1e38), st.sampled_from([1e-30, 1.0, 1e-12, 0.5]),
-)
-
-
-@st.composite
-def rays(draw, max_points: int = 40):
-    n_pts = draw(st.integers(2, max_points))
-    n_rays = draw(st.integers(1, 4))
-    steps = draw(st.lists(st.one_of(st.just(0.0), st.floats(1e-6, 1.0)),
-                          min_size=n_rays * n_pts, max_size=n_rays * n_pts))
-    start = draw(st.floats(-10.0, 10.0))
-    t = start + np.cumsum(np.array(steps).reshape(n_rays, n_pts), axis=-1)
-    w = np.array(draw(st.lists(WEIGHT, min_size=n_rays * n_pts, max_size=n_rays * n_pts)))
-    return t, w.reshape(n_rays, n_pts)
-
-
-def _check(out: torch.Tensor, t: torch.Tensor, n: int) -> None:
-    assert out.shape == (*t.shape[:-1], n)
-    assert torch.isfinite(out).all()
-    assert (out[..., 1:] >= out[..., :-1]).all()
-    assert (out >= t[..., :1]).all() and (out <= t[..., -1:]).all()
-
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=rays(), n=st.integers(1, 70), kind=st.sampled_from(KINDS),
@@ -52,7 +26,7 @@ def test_sample_l0_outputs_are_always_finite_sorted_and_in_range(data, n, kind, 
         w = torch.tensor(w_np, dtype=dtype)
     out = sample_l0(t, w, n, kind=kind, blur=blur, det=det,
                     generator=torch.Generator().manual_seed(seed))
-    _check(out, t, n)
+    check_samples(out, t, n)
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -63,7 +37,7 @@ def test_sample_pdf_outputs_are_always_finite_sorted_and_in_range(data, n, det, 
     t = torch.tensor(t_np, dtype=dtype)
     w = torch.tensor(w_np[..., :-1], dtype=dtype)
     out = sample_pdf(t, w, n, det=det, generator=torch.Generator().manual_seed(seed))
-    _check(out, t, n)
+    check_samples(out, t, n)
 
 
 @settings(max_examples=60, deadline=None)
@@ -111,7 +85,7 @@ def test_named_extreme_inputs(kind, dtype):
     got = sample_l0(t, torch.full_like(z, 0.3), 4, kind=kind, blur=False)
     torch.testing.assert_close(got, uniform.expand(3, 4))
     w = torch.tensor([1e-30, 1e-20, 1e-10, 1.0, 1e-25, 1e-30], dtype=dtype).expand(3, 6)
-    _check(sample_l0(t, w, 64, kind=kind, blur=False), t, 64)
+    check_samples(sample_l0(t, w, 64, kind=kind, blur=False), t, 64)
 
     # a or b == 0 with blur off: a single positive point has no mass for exp/inverse
     spike = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=dtype)
@@ -130,7 +104,7 @@ def test_named_extreme_inputs(kind, dtype):
     # duplicate positions: zero-length intervals get no samples but break nothing
     td = torch.tensor([0.0, 0.5, 0.5, 0.5, 1.0, 1.0], dtype=dtype)
     wd = torch.tensor([0.1, 1.0, 5.0, 1.0, 0.1, 9.0], dtype=dtype)
-    _check(sample_l0(td, wd, 50, kind=kind), td, 50)
+    check_samples(sample_l0(td, wd, 50, kind=kind), td, 50)
     tsame = torch.full((6,), 0.7, dtype=dtype)
     got = sample_l0(tsame, wd, 5, kind=kind)
     assert (got == 0.7).all()

@@ -25,7 +25,7 @@ def test_scalars_and_an_image_read_back(tmp_path):
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (6, 10, 3), dtype=np.uint8)
     with TensorBoardLogger(tmp_path / "run") as tb:
-        tb.scalars(50, {"loss": 0.25, "s": 12.5, "lr": np.float32(1e-3),
+        tb.scalars(50, {"loss": 0.25, "inv_s": 12.5, "lr": np.float32(1e-3),
                         "samples_per_ray": torch.tensor(64), "its_per_s": 7,
                         "note": "skipped", "none": None, "flag": True})
         tb.scalars(100, {"loss": 0.125, "psnr": float("nan")})
@@ -34,7 +34,7 @@ def test_scalars_and_an_image_read_back(tmp_path):
     assert list((tmp_path / "run").glob("events.out.tfevents.*"))
     acc = _read(tmp_path / "run")
     tags = set(acc.Tags()["scalars"])
-    assert tags == {"train/loss", "train/s", "train/lr", "train/samples_per_ray",
+    assert tags == {"train/loss", "train/inv_s", "train/lr", "train/samples_per_ray",
                     "train/its_per_s", "train/psnr", "val/psnr"}
     assert [(e.step, e.value) for e in acc.Scalars("train/loss")] == [(50, 0.25), (100, 0.125)]
     assert acc.Scalars("train/lr")[0].value == pytest.approx(1e-3)

@@ -9,8 +9,6 @@ import torch
 
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import SAMPLERS
-from neus_l0.data.rays import pixel_grid, pixel_rays
-from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.run.checkpoints import (
     latest_checkpoint,
@@ -21,52 +19,9 @@ from neus_l0.run.checkpoints import (
 from neus_l0.train.loop import train
 from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
-# A tiny frequency-encoded MLP on top of confs/demo.yaml (whose SDF is a hash grid since the
-# "Speed" work; the demo tests below run the hash grid itself).
-SMALL = ["model.sdf.hidden=48", "model.sdf.layers=2", "model.sdf.skip=[]",
-         "model.sdf.feature_dim=16", "model.sdf.encoding.kind=frequency",
-         "model.sdf.encoding.n_freqs=2",
-         "model.color.hidden=32", "model.color.layers=1", "render.n_samples=16",
-         "render.n_importance=16", "render.up_sample_steps=2", "train.batch_size=64",
-         "train.warm_up=0", "train.lr=2e-3", "train.log_every=5", "train.val_every=0",
-         "train.save_every=0"]
-
-
-def _look_at(eye):
-    f = -eye / np.linalg.norm(eye)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    c2w = np.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, np.cross(f, r), f, eye
-    return c2w
-
-
-def sphere_scene(root, n_views=6, H=16, W=20, radius=0.5):
-    """A Scene built in memory: a sphere coloured by its normal, black background, masks."""
-    K = torch.tensor([[W * 1.2, 0, (W - 1) / 2], [0, W * 1.2, (H - 1) / 2], [0, 0, 1.0]])
-    imgs, masks, c2ws = [], [], []
-    for i in range(n_views):
-        a, el = 2 * np.pi * i / n_views, 0.3 + 0.3 * (i % 2)
-        eye = 2.5 * np.array([np.cos(a) * np.cos(el), np.sin(a) * np.cos(el), np.sin(el)])
-        c2w = torch.tensor(_look_at(eye), dtype=torch.float32)
-        o, d = pixel_rays(K, c2w, pixel_grid(H, W).reshape(-1, 2))
-        b = (o * d).sum(-1)
-        disc = b * b - ((o * o).sum(-1) - radius**2)
-        hit = disc > 0
-        n = (o + (-b - disc.clamp_min(0).sqrt())[:, None] * d) / radius
-        imgs.append(((0.5 + 0.4 * n) * hit[:, None]).reshape(H, W, 3))
-        masks.append(hit.float().reshape(H, W))
-        c2ws.append(c2w)
-    scale = np.diag([2.0, 2.0, 2.0, 1.0])
-    scale[:3, 3] = [1.0, -2.0, 0.5]
-    return Scene(root=Path(root), images=torch.stack(imgs), masks=torch.stack(masks),
-                 has_masks=True, intrinsics=K.expand(n_views, 3, 3).clone(),
-                 c2w=torch.stack(c2ws), scale_mat=scale,
-                 image_names=[f"{i:03d}.png" for i in range(n_views)])
-
 
 @pytest.fixture
-def scene(tmp_path):
+def scene(sphere_scene, tmp_path):
     return sphere_scene(tmp_path / "scene")
 
 
@@ -85,8 +40,8 @@ def test_schedules():
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)
-def test_a_few_steps_lower_the_loss(scene, tmp_path, sampler):
-    cfg = load_config("demo", SMALL + [f"sampler={sampler}", "train.iters=30"])
+def test_a_few_steps_lower_the_loss(small, scene, tmp_path, sampler):
+    cfg = load_config("demo", small + [f"sampler={sampler}", "train.iters=30"])
     res = train(scene, cfg, tmp_path / "run", progress=False)
     m = read_metrics(tmp_path / "run")
     assert len(m) == 6 and res.iteration == 30
@@ -101,8 +56,8 @@ def test_a_few_steps_lower_the_loss(scene, tmp_path, sampler):
         assert torch.isfinite(p).all()
 
 
-def test_run_folder_layout(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=4", "train.val_every=2",
+def test_run_folder_layout(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=4", "train.val_every=2",
                                        "train.val_downscale=2", "train.save_every=2",
                                        "train.keep_checkpoints=1", "train.log_every=2"])
     run = tmp_path / "run"
@@ -122,8 +77,8 @@ def test_run_folder_layout(scene, tmp_path):
         train(scene, cfg, run, progress=False)
 
 
-def test_resume_equals_uninterrupted(scene, tmp_path):
-    full = load_config("demo", SMALL + ["train.iters=12"])
+def test_resume_equals_uninterrupted(small, scene, tmp_path):
+    full = load_config("demo", small + ["train.iters=12"])
     train(scene, full, tmp_path / "a", progress=False)
     part = train(scene, full, tmp_path / "b", progress=False, stop_at=5)
     assert part.stopped_early and part.iteration == 5
@@ -142,8 +97,8 @@ def test_resume_equals_uninterrupted(scene, tmp_path):
             assert torch.equal(v, b["optimizer"]["state"][k][name]), (k, name)
 
 
-def test_interrupted_checkpoint_write_keeps_the_previous_one(scene, tmp_path, monkeypatch):
-    cfg = load_config("demo", SMALL + ["train.iters=2", "train.save_every=2"])
+def test_interrupted_checkpoint_write_keeps_the_previous_one(small, scene, tmp_path, monkeypatch):
+    cfg = load_config("demo", small + ["train.iters=2", "train.save_every=2"])
     run = tmp_path / "run"
     train(scene, cfg, run, progress=False)
     before = latest_checkpoint(run).read_bytes()
@@ -155,7 +110,7 @@ def test_interrupted_checkpoint_write_keeps_the_previous_one(scene, tmp_path, mo
         raise OSError("disk full")  # ... but the write fails before the rename
 
     monkeypatch.setattr(torch, "save", failing_save)
-    cfg4 = load_config("demo", SMALL + ["train.iters=4", "train.save_every=2"])
+    cfg4 = load_config("demo", small + ["train.iters=4", "train.save_every=2"])
     with pytest.raises(OSError, match="disk full"):
         train(scene, cfg4, run, resume=True, progress=False)
     monkeypatch.undo()
@@ -165,8 +120,8 @@ def test_interrupted_checkpoint_write_keeps_the_previous_one(scene, tmp_path, mo
     assert load_checkpoint(latest_checkpoint(run))["iteration"] == 2
 
 
-def test_nan_checkpoint_is_refused(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=2"])
+def test_nan_checkpoint_is_refused(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=2"])
     run = tmp_path / "run"
     train(scene, cfg, run, progress=False)
     path = latest_checkpoint(run)
@@ -180,8 +135,8 @@ def test_nan_checkpoint_is_refused(scene, tmp_path):
         load_trained_model(run)
 
 
-def test_resume_without_checkpoint_and_missing_masks(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=2"])
+def test_resume_without_checkpoint_and_missing_masks(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=2"])
     with pytest.raises(NeusL0Error, match="nothing to resume"):
         train(scene, cfg, tmp_path / "empty", resume=True, progress=False)
     import dataclasses
@@ -191,14 +146,14 @@ def test_resume_without_checkpoint_and_missing_masks(scene, tmp_path):
         train(no_masks, cfg, tmp_path / "r", progress=False)
 
 
-def test_max_seconds_stops_and_checkpoints(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=100000", "train.max_seconds=0.5"])
+def test_max_seconds_stops_and_checkpoints(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=100000", "train.max_seconds=0.5"])
     res = train(scene, cfg, tmp_path / "run", progress=False)
     assert res.stopped_early and 0 < res.iteration < 100000
     assert latest_checkpoint(tmp_path / "run").name == f"ckpt_{res.iteration:07d}.pt"
 
 
-def test_hooks_join_the_metrics_and_do_not_count_as_training_time(scene, tmp_path,
+def test_hooks_join_the_metrics_and_do_not_count_as_training_time(small, scene, tmp_path,
                                                                    monkeypatch):
     import neus_l0.train.state as state_module
 
@@ -219,7 +174,7 @@ def test_hooks_join_the_metrics_and_do_not_count_as_training_time(scene, tmp_pat
         fake["offset"] += 100.0
         return {"probe": float(iteration) * 2}
 
-    cfg = load_config("demo", SMALL + ["train.iters=6", "train.max_seconds=50",
+    cfg = load_config("demo", small + ["train.iters=6", "train.max_seconds=50",
                                        "train.log_every=2"])
     res = train(scene, cfg, tmp_path / "run", progress=False, hooks=[slow_hook])
     rows = read_metrics(tmp_path / "run")
@@ -230,11 +185,11 @@ def test_hooks_join_the_metrics_and_do_not_count_as_training_time(scene, tmp_pat
     assert res.seconds < 50
 
 
-def test_background_model_trains(tmp_path):
+def test_background_model_trains(small, sphere_scene, tmp_path):
     import dataclasses
 
     scene = dataclasses.replace(sphere_scene(tmp_path / "s"), has_masks=False)
-    cfg = load_config("womask", SMALL + ["model.background.hidden=32",
+    cfg = load_config("womask", small + ["model.background.hidden=32",
                                          "model.background.layers=2",
                                          "model.background.skip=[]",
                                          "render.n_outside=8", "train.iters=4",
@@ -269,7 +224,7 @@ def write_scene_folder(scene, root):
     return root
 
 
-def test_cli_train_then_mesh(scene, tmp_path, capsys):
+def test_cli_train_then_mesh(small, scene, tmp_path, capsys):
     import trimesh
 
     from neus_l0.cli import main
@@ -277,7 +232,7 @@ def test_cli_train_then_mesh(scene, tmp_path, capsys):
     data = write_scene_folder(scene, tmp_path / "data")
     run = tmp_path / "run"
     args = ["train", str(data), "--conf", "demo", "--out", str(run), "--quiet",
-            *SMALL, "train.iters=3"]
+            *small, "train.iters=3"]
     assert main(args) == 0
     assert (run / "metrics.jsonl").is_file() and latest_checkpoint(run) is not None
     # resume with a longer schedule, overrides placed before the options
@@ -306,14 +261,14 @@ def test_cli_errors_are_one_line(scene, tmp_path, capsys):
     assert "train first" in capsys.readouterr().err
 
 
-def _tiny_demo(monkeypatch, tmp_path, iters):
+def _tiny_demo(small, monkeypatch, tmp_path, iters):
     import neus_l0.commands.demo as demo
     from neus_l0.cli import main
 
     monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
     out = tmp_path / "demo"
     rc = main(["demo", "--out", str(out), "--quiet", "--resolution", "40",
-               *[o for o in SMALL[:-3] if not o.startswith("model.sdf.encoding")],
+               *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
                f"train.iters={iters}", "train.val_every=0"])
     assert rc == 0
     for p in ("scene/cameras_sphere.npz", "run/config.yaml", "mesh.ply", "metrics.json",
@@ -322,21 +277,21 @@ def _tiny_demo(monkeypatch, tmp_path, iters):
     return json.loads((out / "metrics.json").read_text())
 
 
-def test_demo_quick(monkeypatch, tmp_path):
-    m = _tiny_demo(monkeypatch, tmp_path, 3)
+def test_demo_quick(small, monkeypatch, tmp_path):
+    m = _tiny_demo(small, monkeypatch, tmp_path, 3)
     assert m["iterations"] == 3 and m["mesh"]["faces"] > 0
 
 
 @pytest.mark.slow
-def test_demo_end_to_end_small(monkeypatch, tmp_path):
-    m = _tiny_demo(monkeypatch, tmp_path, 300)
+def test_demo_end_to_end_small(small, monkeypatch, tmp_path):
+    m = _tiny_demo(small, monkeypatch, tmp_path, 300)
     assert m["chamfer"] is None or np.isfinite(m["chamfer"]["overall"])
 
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-def test_training_on_cuda_matches_resume(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=6"])
+def test_training_on_cuda_matches_resume(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=6"])
     train(scene, cfg, tmp_path / "a", device="cuda", progress=False)
     train(scene, cfg, tmp_path / "b", device="cuda", progress=False, stop_at=3)
     train(scene, cfg, tmp_path / "b", device="cuda", resume=True, progress=False)
@@ -346,10 +301,10 @@ def test_training_on_cuda_matches_resume(scene, tmp_path):
         assert torch.allclose(a["model"][k], b["model"][k], atol=1e-6), k
 
 
-def test_resume_with_other_network_sizes_is_refused(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=2"])
+def test_resume_with_other_network_sizes_is_refused(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=2"])
     train(scene, cfg, tmp_path / "run", progress=False)
-    wider = load_config("demo", SMALL + ["train.iters=4", "model.sdf.hidden=40"])
+    wider = load_config("demo", small + ["train.iters=4", "model.sdf.hidden=40"])
     with pytest.raises(NeusL0Error, match="does not fit"):
         train(scene, wider, tmp_path / "run", resume=True, progress=False)
 
@@ -361,8 +316,8 @@ GRID = ["render.occupancy.enabled=true", "render.occupancy.resolution=32",
         "render.occupancy.update_every=4"]
 
 
-def test_a_few_steps_with_the_grid_lower_the_loss(scene, tmp_path):
-    cfg = load_config("demo", SMALL + GRID + ["train.iters=30", "train.eikonal_fraction=0.5"])
+def test_a_few_steps_with_the_grid_lower_the_loss(small, scene, tmp_path):
+    cfg = load_config("demo", small + GRID + ["train.iters=30", "train.eikonal_fraction=0.5"])
     train(scene, cfg, tmp_path / "run", progress=False)
     m = read_metrics(tmp_path / "run")
     for row in m:
@@ -378,8 +333,8 @@ def test_a_few_steps_with_the_grid_lower_the_loss(scene, tmp_path):
     assert occ[(r - 0.5).abs() < 0.01].all()
 
 
-def test_resume_with_the_grid_equals_uninterrupted(scene, tmp_path):
-    full = load_config("demo", SMALL + GRID + ["train.iters=10"])
+def test_resume_with_the_grid_equals_uninterrupted(small, scene, tmp_path):
+    full = load_config("demo", small + GRID + ["train.iters=10"])
     train(scene, full, tmp_path / "a", progress=False)
     train(scene, full, tmp_path / "b", progress=False, stop_at=6)
     train(scene, full, tmp_path / "b", resume=True, progress=False)
@@ -390,12 +345,12 @@ def test_resume_with_the_grid_equals_uninterrupted(scene, tmp_path):
     assert torch.equal(a["occupancy"]["counter"], b["occupancy"]["counter"])
 
 
-def test_amp_is_a_no_op_on_the_cpu(scene):
+def test_amp_is_a_no_op_on_the_cpu(small, scene):
     from neus_l0.fields.model import make_model
     from neus_l0.train.step import autocast, make_optimizer, make_scaler, train_step
 
-    cfg = load_config("demo", SMALL)
-    amp = load_config("demo", SMALL + ["train.amp=fp16"])
+    cfg = load_config("demo", small)
+    amp = load_config("demo", small + ["train.amp=fp16"])
     assert not make_scaler(amp, "cpu").is_enabled()
     assert autocast(amp, "cpu").__class__.__name__ == "nullcontext"
     outs = []
@@ -410,8 +365,8 @@ def test_amp_is_a_no_op_on_the_cpu(scene):
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 @pytest.mark.parametrize("amp", ["bf16", "fp16"])
-def test_amp_trains_on_cuda(scene, tmp_path, amp):
-    cfg = load_config("demo", SMALL + GRID + ["train.iters=30", f"train.amp={amp}"])
+def test_amp_trains_on_cuda(small, scene, tmp_path, amp):
+    cfg = load_config("demo", small + GRID + ["train.iters=30", f"train.amp={amp}"])
     train(scene, cfg, tmp_path / "run", device="cuda", progress=False)
     m = read_metrics(tmp_path / "run")
     assert all(np.isfinite(r["loss"]) for r in m)
@@ -432,8 +387,8 @@ def test_next_batch_size_closed_form():
         load_config("demo", ["train.sample_budget=-1"])
 
 
-def test_sample_budget_adapts_the_rays_and_resumes_exactly(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=12", "train.log_every=3",
+def test_sample_budget_adapts_the_rays_and_resumes_exactly(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=12", "train.log_every=3",
                                        "render.cull_outside_sphere=true",
                                        "train.sample_budget=6000"])
     train(scene, cfg, tmp_path / "a", progress=False)

@@ -6,7 +6,6 @@ import signal
 
 import pytest
 import torch
-from test_train import SMALL, sphere_scene
 
 from neus_l0.config.load import load_config
 from neus_l0.errors import NeusL0Error
@@ -16,13 +15,13 @@ from neus_l0.train.loop import train
 
 
 @pytest.fixture
-def scene(tmp_path):
+def scene(sphere_scene, tmp_path):
     return sphere_scene(tmp_path / "scene")
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_a_signal_finishes_the_step_checkpoints_and_resume_is_exact(scene, tmp_path, sig):
-    cfg = load_config("demo", SMALL + ["train.iters=12", "train.log_every=1",
+def test_a_signal_finishes_the_step_checkpoints_and_resume_is_exact(small, scene, tmp_path, sig):
+    cfg = load_config("demo", small + ["train.iters=12", "train.log_every=1",
                                        "train.save_every=100", "train.tensorboard=false"])
 
     def send(iteration, *_):  # a scheduler's preemption, arriving during iteration 5's log
@@ -44,8 +43,8 @@ def test_a_signal_finishes_the_step_checkpoints_and_resume_is_exact(scene, tmp_p
         assert torch.equal(ref["model"][k], got["model"][k]), k
 
 
-def test_a_second_training_into_the_same_folder_is_refused(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=2", "train.tensorboard=false"])
+def test_a_second_training_into_the_same_folder_is_refused(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=2", "train.tensorboard=false"])
     with RunLock(tmp_path / "run"), pytest.raises(NeusL0Error, match=f"PID {os.getpid()}"):
         train(scene, cfg, tmp_path / "run", progress=False)
     res = train(scene, cfg, tmp_path / "run", progress=False)  # released: it runs now
@@ -53,25 +52,25 @@ def test_a_second_training_into_the_same_folder_is_refused(scene, tmp_path):
     assert not (tmp_path / "run" / ".lock").exists()
 
 
-def test_an_out_that_is_a_file_is_refused(scene, tmp_path):
+def test_an_out_that_is_a_file_is_refused(small, scene, tmp_path):
     afile = tmp_path / "afile"
     afile.write_text("x")
-    cfg = load_config("demo", SMALL + ["train.iters=2"])
+    cfg = load_config("demo", small + ["train.iters=2"])
     with pytest.raises(NeusL0Error, match="afile: is a file"):
         train(scene, cfg, afile, progress=False)
     assert afile.read_text() == "x"
 
 
-def test_tensorboard_events_hold_the_training_curves(scene, tmp_path):
+def test_tensorboard_events_hold_the_training_curves(small, scene, tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    cfg = load_config("demo", SMALL + ["train.iters=6", "train.log_every=3",
+    cfg = load_config("demo", small + ["train.iters=6", "train.log_every=3",
                                        "train.val_every=6", "train.val_downscale=2"])
     train(scene, cfg, tmp_path / "run", progress=False)
     acc = EventAccumulator(str(tmp_path / "run"))
     acc.Reload()
     tags = acc.Tags()
-    for name in ("loss", "psnr", "s", "lr", "samples_per_ray", "its_per_s"):
+    for name in ("loss", "psnr", "inv_s", "lr", "samples_per_ray", "its_per_s"):
         assert f"train/{name}" in tags["scalars"], name
     assert [e.step for e in acc.Scalars("train/loss")] == [3, 6]
     assert tags["images"], "the validation image is in TensorBoard too"
@@ -79,12 +78,12 @@ def test_tensorboard_events_hold_the_training_curves(scene, tmp_path):
     assert len(lines) == 2
 
 
-def test_the_no_grad_passes_see_every_optimiser_update(scene):
+def test_the_no_grad_passes_see_every_optimiser_update(small, scene):
     """The up-sampling's cached weight-norm weights follow the fused Adam's updates."""
     from neus_l0.fields.model import make_model
     from neus_l0.train.step import make_optimizer, train_step
 
-    cfg = load_config("demo", SMALL)
+    cfg = load_config("demo", small)
     model = make_model(cfg)
     opt = make_optimizer(model, cfg)
     g = torch.Generator().manual_seed(0)

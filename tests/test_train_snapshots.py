@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_train import SMALL, sphere_scene
 
 import neus_l0.train.loop as train_module
 import neus_l0.train.state as state_module
@@ -32,7 +31,7 @@ class FakeClock:
 
 
 @pytest.fixture
-def scene(tmp_path):
+def scene(sphere_scene, tmp_path):
     return sphere_scene(tmp_path / "scene")
 
 
@@ -59,8 +58,8 @@ def _snapshot_lines(run: Path) -> list[dict]:
     return [m for m in _lines(run) if "snapshot_s" in m]
 
 
-def test_snapshots_checkpoint_at_their_marks(scene, tmp_path, clock):
-    cfg = load_config("demo", SMALL + ["train.iters=12", "train.keep_checkpoints=1"])
+def test_snapshots_checkpoint_at_their_marks(small, scene, tmp_path, clock):
+    cfg = load_config("demo", small + ["train.iters=12", "train.keep_checkpoints=1"])
     run = tmp_path / "run"
     res = train(scene, cfg, run, progress=False, snapshots=[6.5, 2.5, 6.0, 100.0])
     # loop time after step k is k s: 2.5 -> step 3, 6.0 -> step 6, 6.5 -> step 7; 100 s is
@@ -80,8 +79,8 @@ def test_snapshots_checkpoint_at_their_marks(scene, tmp_path, clock):
     assert [m["iter"] for m in _lines(run) if "loss" in m] == [5, 10, 12]
 
 
-def test_snapshot_writing_is_not_training_time(scene, tmp_path, clock, monkeypatch):
-    base = SMALL + ["train.iters=100", "train.max_seconds=10"]
+def test_snapshot_writing_is_not_training_time(small, scene, tmp_path, clock, monkeypatch):
+    base = small + ["train.iters=100", "train.max_seconds=10"]
     plain = train(scene, load_config("demo", base), tmp_path / "plain", progress=False)
     assert plain.iteration == 11 and plain.stopped_early  # 11 s > 10 s after step 11
 
@@ -106,8 +105,8 @@ def test_snapshot_writing_is_not_training_time(scene, tmp_path, clock, monkeypat
     assert res.seconds == 11.0 + 100.0
 
 
-def test_resume_with_snapshots_equals_uninterrupted(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=12", "train.keep_checkpoints=1"])
+def test_resume_with_snapshots_equals_uninterrupted(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=12", "train.keep_checkpoints=1"])
     marks = [0.0, 1e-4, 1e6]  # real clock: the first marks fall early, the last at the end
     plain = train(scene, cfg, tmp_path / "plain", progress=False)
     snap = train(scene, cfg, tmp_path / "snap", progress=False, snapshots=marks)
@@ -137,8 +136,8 @@ def test_resume_with_snapshots_equals_uninterrupted(scene, tmp_path):
     assert plain.snapshots == []
 
 
-def test_bad_marks_are_refused_before_anything_is_written(scene, tmp_path):
-    cfg = load_config("demo", SMALL + ["train.iters=2"])
+def test_bad_marks_are_refused_before_anything_is_written(small, scene, tmp_path):
+    cfg = load_config("demo", small + ["train.iters=2"])
     for bad in ([-1.0], [float("nan")], [1.0, float("inf")]):
         with pytest.raises(NeusL0Error, match="snapshots"):
             train(scene, cfg, tmp_path / "run", progress=False, snapshots=bad)
