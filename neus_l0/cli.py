@@ -27,6 +27,7 @@ COMMANDS: list[tuple[str, str]] = [
     ("bench", "bench"),
     ("figures", "figures"),
     ("study", "study"),
+    ("config", "config"),
 ]
 
 

@@ -14,7 +14,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--resolution", type=int, default=512,
                    help="grid samples per axis (512); refused with the largest resolution "
                         "that fits when the estimated memory exceeds what is available")
-    p.add_argument("--out", default=None, help="output .ply or .obj (default RUN/mesh.ply)")
+    p.add_argument("--out", default=None,
+                   help="output mesh: .ply, .obj, .glb, .stl or .off (default RUN/mesh.ply); "
+                        "vertex colours (--colors) are kept in .ply and .glb")
     p.add_argument("--clean", action=argparse.BooleanOptionalAction, default=True,
                    help="keep only the largest connected component (default on)")
     p.add_argument("--colors", action="store_true",
@@ -54,14 +56,15 @@ def _check(args: argparse.Namespace):
     from neus_l0.commands._paths import check_output_file
     from neus_l0.errors import NeusL0Error
     from neus_l0.mesh.cleanup import CleanupOptions
-    from neus_l0.mesh.extract import SPARSE_ABOVE
+    from neus_l0.mesh.extract import MESH_FORMATS, SPARSE_ABOVE
     from neus_l0.mesh.memory import plan_extraction
 
     if args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
     out = check_output_file(args.out if args.out else Path(args.run) / "mesh.ply", "--out")
-    if out.suffix.lower() not in (".ply", ".obj"):
-        raise NeusL0Error(f"--out {out}: unsupported mesh format (use .ply or .obj)")
+    if out.suffix.lower().lstrip(".") not in MESH_FORMATS:
+        raise NeusL0Error(f"--out {out}: unsupported mesh format (use "
+                          f"{', '.join('.' + k for k in MESH_FORMATS)})")
     if args.texture and out.suffix.lower() != ".obj":
         raise NeusL0Error(f"--texture: --out {out} must end in .obj (written with .mtl, .png)")
     if args.texture and not 64 <= args.texture_size <= 16384:

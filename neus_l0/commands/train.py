@@ -12,7 +12,8 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                        description="Train NeuS on a NeuS-format scene folder. The "
                                    "up-sampling draw is the config's `sampler`: wmask/womask "
                                    "use NeuS's own (hvs) as the reference; add sampler=l0 for "
-                                   "the L0-Sampler.")
+                                   "the L0-Sampler. `neus-l0 config show --conf CONF "
+                                   "[key=value ...]` lists every key with its meaning.")
     p.add_argument("data", metavar="DATA", help="scene folder (image/, mask/, cameras_sphere.npz)")
     p.add_argument("--conf", default="wmask",
                    help="config: a YAML path, confs/NAME.yaml or a built-in NAME "

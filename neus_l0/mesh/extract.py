@@ -500,12 +500,19 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
     return mesh
 
 
+#: Mesh file formats `export_mesh` writes, by suffix: PLY and GLB keep vertex colours (GLB is
+#: what web viewers and Blender import; it stores float32 positions), OBJ, STL and OFF keep
+#: the geometry.
+MESH_FORMATS = ("ply", "obj", "glb", "stl", "off")
+
+
 def export_mesh(mesh: trimesh.Trimesh, path: str | Path) -> Path:
-    """Write a PLY or OBJ file atomically (format from the suffix)."""
+    """Write a mesh file atomically, its format from the suffix (`MESH_FORMATS`)."""
     path = Path(path)
     kind = path.suffix.lower().lstrip(".")
-    if kind not in ("ply", "obj"):
-        raise NeusL0Error(f"{path}: unsupported mesh format '.{kind}' (use .ply or .obj)")
+    if kind not in MESH_FORMATS:
+        raise NeusL0Error(f"{path}: unsupported mesh format '.{kind}' "
+                          f"(use {', '.join('.' + k for k in MESH_FORMATS)})")
     with atomic_path(path) as tmp:
         mesh.export(tmp, file_type=kind)
     return path
