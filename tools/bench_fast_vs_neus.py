@@ -3,7 +3,7 @@
 Usage:
     python tools/bench_fast_vs_neus.py --scenes pits-and-thin,/path/to/bunny --out DIR \
         [--neus-conf wmask --neus-sampler hvs --neus-seconds 480] \
-        [--fast-conf fast --fast-sampler l0 --fast-seconds 120] [--snapshots-per-run 4] \
+        [--fast-conf fast --fast-sampler hvs --fast-seconds 120] [--snapshots-per-run 4] \
         [--seed 0] [--device cpu|cuda] [--threads N] [--resolution 128] \
         [--eval-density 0.5] [--views 24 --width 200 --height 150] [--holdout 0] \
         [--timeout S] [--neus-set KEY=VALUE ...] [--fast-set KEY=VALUE ...] [override ...]
@@ -59,7 +59,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="comma-separated built-in scene names or scene folders")
     p.add_argument("--out", required=True, help="output folder DIR")
     for arm, conf, sampler, seconds in (("neus", "wmask", "hvs", 480.0),
-                                        ("fast", "fast", "l0", 120.0)):
+                                        ("fast", "fast", "hvs", 120.0)):
         p.add_argument(f"--{arm}-conf", default=conf, help=f"{arm} arm's config ({conf})")
         p.add_argument(f"--{arm}-sampler", default=sampler,
                        help=f"{arm} arm's sampler ({sampler})")
