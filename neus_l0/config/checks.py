@@ -1,10 +1,16 @@
-"""Range checks of config values whose types are right but whose meaning is not.
+"""Range rules of the config: one rule per key, and the few rules that tie keys together.
 
-One rule per key, raising `ConfigError` that names the dotted key.
+Types and choices are checked while loading (`neus_l0.config.load`, the schema's types and
+`Literal` choice lists); these rules catch numbers whose type is right but whose value
+cannot work (``render.chunk=0``, ``train.lr=.nan``, ``train.lr_alpha=-1``), before any work
+starts. Every float must be finite. A broken rule raises `ConfigError` naming the dotted
+key, the value and the range.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -12,6 +18,7 @@ from neus_l0.config.schema import (
     L0_KINDS,
     BackgroundConfig,
     ColorConfig,
+    DataConfig,
     EncodingConfig,
     HullConfig,
     OccupancyConfig,
@@ -24,71 +31,145 @@ from neus_l0.config.schema import (
 from neus_l0.errors import ConfigError
 
 
-def validate(obj: Any, prefix: str) -> None:
-    """Range checks of values whose types are right but whose meaning is not."""
-    def bad(name: str, why: str) -> ConfigError:
-        return ConfigError(f"{prefix}{name}: {why}")
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """A closed or open interval a number must lie in (None: unbounded on that side)."""
 
-    if isinstance(obj, SamplerConfig):
-        _validate_sampler(obj, bad)
-    if isinstance(obj, EncodingConfig):
-        if obj.n_freqs < 0:
-            raise bad("n_freqs", "must be >= 0")
-        if obj.kind == "hashgrid":
-            for name in ("n_levels", "n_features", "base_resolution", "update_steps"):
-                if getattr(obj, name) < 1:
-                    raise bad(name, "must be >= 1")
-            if not 4 <= obj.log2_hashmap_size <= 30:
-                raise bad("log2_hashmap_size", "must be in 4 .. 30")
-            if obj.per_level_scale < 0 or 0 < obj.per_level_scale < 1:
-                raise bad("per_level_scale", "must be >= 1 (or 0: from finest_resolution)")
-            if obj.per_level_scale == 0 and obj.finest_resolution < obj.base_resolution:
-                raise bad("finest_resolution", "must be >= base_resolution")
-            for name in ("bound", "init_scale", "lr_scale"):
-                if not getattr(obj, name) > 0:
-                    raise bad(name, "must be > 0")
-            if obj.start_level is not None and obj.start_level < 0:
-                raise bad("start_level", "must be >= 0 (or null: all levels)")
-    if isinstance(obj, PointBoundConfig) and not (obj.margin >= 0 and obj.min_views >= 2):
-        raise bad("margin", "margin must be >= 0 and min_views >= 2")
-    if isinstance(obj, HullConfig):
-        if obj.resolution < 8:
-            raise bad("resolution", "must be >= 8 cells per axis")
-        if not obj.margin_px >= 0:
-            raise bad("margin_px", "must be >= 0 pixels")
-    if isinstance(obj, RenderConfig):
-        if obj.n_samples < 2:
-            raise bad("n_samples", "must be >= 2")
-        if obj.up_sample_steps < 0 or obj.n_importance < 0:
-            raise bad("n_importance", "must be >= 0")
-        if obj.up_sample_steps and obj.n_importance % obj.up_sample_steps:
-            raise bad("n_importance", f"{obj.n_importance} is not a multiple of "
-                      f"up_sample_steps={obj.up_sample_steps}")
-    if isinstance(obj, OccupancyConfig):
-        if obj.block < 1 or obj.resolution < 1 or obj.resolution % obj.block:
-            raise bad("resolution", f"{obj.resolution} must be a positive multiple of "
-                      f"block={obj.block}")
-        if obj.update_every < 1 or obj.hold < 0 or obj.start < 0:
-            raise bad("update_every", "update_every must be >= 1, hold and start >= 0")
-        if obj.margin < 1.0 or obj.widths < 0.0:
-            raise bad("margin", "margin must be >= 1 and widths >= 0")
-    if isinstance(obj, TrainConfig):
-        if not 0.0 < obj.eikonal_fraction <= 1.0:
-            raise bad("eikonal_fraction", "must be in (0, 1]")
-        for name in ("iters", "batch_size", "log_every"):
-            if getattr(obj, name) < 1:
-                raise bad(name, "must be >= 1")
-        if obj.sample_budget < 0:
-            raise bad("sample_budget", "must be >= 0 (0: off)")
-        if obj.lr <= 0:
-            raise bad("lr", "must be > 0")
-    if isinstance(obj, (SDFConfig, ColorConfig, BackgroundConfig)):
-        if obj.hidden < 1 or obj.layers < 1:
-            raise bad("hidden", "hidden and layers must be >= 1")
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    note: str = ""
+
+    def holds(self, v: float) -> bool:
+        if self.lo is not None and not (v > self.lo if self.lo_open else v >= self.lo):
+            return False
+        return self.hi is None or (v < self.hi if self.hi_open else v <= self.hi)
+
+    def describe(self) -> str:
+        if self.hi is None:
+            text = f"must be {'>' if self.lo_open else '>='} {self.lo:g}"
+        elif self.lo is None:
+            text = f"must be {'<' if self.hi_open else '<='} {self.hi:g}"
+        else:
+            text = (f"must be in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}"
+                    f"{')' if self.hi_open else ']'}")
+        return text + (f" ({self.note})" if self.note else "")
 
 
-def _validate_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]) -> None:
-    """Range checks of a `SamplerConfig` (its choices are checked by their `Literal` types)."""
+def at_least(lo: float, note: str = "") -> Range:
+    return Range(lo=lo, note=note)
+
+
+def positive(note: str = "") -> Range:
+    return Range(lo=0.0, lo_open=True, note=note)
+
+
+#: The range of each numeric key, by (config class, field). Floats not named here must
+#: only be finite.
+RULES: dict[tuple[type, str], Range] = {
+    (SamplerConfig, "pad"): at_least(0),
+    (SamplerConfig, "base_inv_s"): positive(),
+    (DataConfig, "downscale"): at_least(1),
+    (EncodingConfig, "n_freqs"): at_least(0),
+    (EncodingConfig, "n_levels"): at_least(1),
+    (EncodingConfig, "n_features"): at_least(1),
+    (EncodingConfig, "log2_hashmap_size"): Range(4, 30),
+    (EncodingConfig, "base_resolution"): at_least(1),
+    (EncodingConfig, "finest_resolution"): at_least(1),
+    (EncodingConfig, "bound"): positive(),
+    (EncodingConfig, "init_scale"): positive(),
+    (EncodingConfig, "lr_scale"): positive(),
+    (EncodingConfig, "start_level"): at_least(0, "or null: all levels"),
+    (EncodingConfig, "update_steps"): at_least(1),
+    (SDFConfig, "hidden"): at_least(1),
+    (SDFConfig, "layers"): at_least(1),
+    (SDFConfig, "feature_dim"): at_least(0),
+    (SDFConfig, "scale"): positive(),
+    (SDFConfig, "softplus_beta"): positive(),
+    (ColorConfig, "hidden"): at_least(1),
+    (ColorConfig, "layers"): at_least(1),
+    (BackgroundConfig, "hidden"): at_least(1),
+    (BackgroundConfig, "layers"): at_least(1),
+    (RenderConfig, "n_samples"): at_least(2),
+    (RenderConfig, "n_importance"): at_least(0),
+    (RenderConfig, "up_sample_steps"): at_least(0),
+    (RenderConfig, "n_outside"): at_least(0),
+    (RenderConfig, "chunk"): at_least(1, "rays per rendering chunk"),
+    (OccupancyConfig, "resolution"): at_least(1),
+    (OccupancyConfig, "update_every"): at_least(1),
+    (OccupancyConfig, "start"): at_least(0),
+    (OccupancyConfig, "margin"): at_least(1),
+    (OccupancyConfig, "widths"): at_least(0),
+    (OccupancyConfig, "hold"): at_least(0),
+    (OccupancyConfig, "block"): at_least(1),
+    (HullConfig, "resolution"): at_least(8, "cells per axis"),
+    (HullConfig, "margin_px"): at_least(0, "pixels"),
+    (PointBoundConfig, "margin"): at_least(0),
+    (PointBoundConfig, "min_views"): at_least(2),
+    (TrainConfig, "iters"): at_least(1),
+    (TrainConfig, "batch_size"): at_least(1),
+    (TrainConfig, "sample_budget"): at_least(0, "0: off"),
+    (TrainConfig, "lr"): positive(),
+    (TrainConfig, "lr_alpha"): Range(0, 1, note="the final fraction of the learning rate"),
+    (TrainConfig, "warm_up"): at_least(0),
+    (TrainConfig, "anneal_end"): at_least(0),
+    (TrainConfig, "igr_weight"): at_least(0),
+    (TrainConfig, "mask_weight"): at_least(0),
+    (TrainConfig, "seed"): at_least(0),
+    (TrainConfig, "log_every"): at_least(1),
+    (TrainConfig, "val_every"): at_least(0, "0: never"),
+    (TrainConfig, "val_downscale"): at_least(1),
+    (TrainConfig, "save_every"): at_least(0, "0: only at the end"),
+    (TrainConfig, "keep_checkpoints"): at_least(0, "0: keep all"),
+    (TrainConfig, "max_seconds"): at_least(0, "0: no time limit"),
+    (TrainConfig, "eikonal_fraction"): Range(0, 1, lo_open=True),
+}
+
+
+def _check_numbers(obj: Any, bad: Callable[[str, str], ConfigError]) -> None:
+    """Every number of `obj` finite and in its `RULES` range; list entries too."""
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        values = value if isinstance(value, list) else [value]
+        for v in values:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                continue
+            if not math.isfinite(v):
+                raise bad(f.name, f"{v!r} is not a finite number")
+            rule = RULES.get((type(obj), f.name))
+            if rule is not None and not rule.holds(v):
+                raise bad(f.name, f"{v!r}: {rule.describe()}")
+
+
+def _check_encoding(obj: EncodingConfig, bad: Callable[[str, str], ConfigError]) -> None:
+    if obj.per_level_scale != 0 and obj.per_level_scale < 1:
+        raise bad("per_level_scale", "must be >= 1 (or 0: from finest_resolution)")
+    if obj.kind == "hashgrid" and obj.per_level_scale == 0 and \
+            obj.finest_resolution < obj.base_resolution:
+        raise bad("finest_resolution", "must be >= base_resolution")
+
+
+def _check_skips(obj: SDFConfig | BackgroundConfig, bad: Callable[[str, str], ConfigError]
+                 ) -> None:
+    wrong = [i for i in obj.skip if not 0 <= i <= obj.layers]
+    if wrong:
+        raise bad("skip", f"{wrong}: layer indices must be in [0, layers={obj.layers}]")
+
+
+def _check_render(obj: RenderConfig, bad: Callable[[str, str], ConfigError]) -> None:
+    if obj.up_sample_steps and obj.n_importance % obj.up_sample_steps:
+        raise bad("n_importance", f"{obj.n_importance} is not a multiple of "
+                  f"up_sample_steps={obj.up_sample_steps}")
+
+
+def _check_occupancy(obj: OccupancyConfig, bad: Callable[[str, str], ConfigError]) -> None:
+    if obj.resolution % obj.block:
+        raise bad("resolution", f"{obj.resolution} must be a positive multiple of "
+                  f"block={obj.block}")
+
+
+def _check_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]) -> None:
     if obj.kind:
         if obj.name not in L0_KINDS:
             raise bad("kind", f"sampler {obj.name} has no interpolation kind (only "
@@ -103,7 +184,29 @@ def _validate_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]
             if unused:
                 raise bad(key, "applies only to the interpolant's draw; add "
                           "sampler.masses=interpolant")
-    if not obj.pad >= 0.0:
-        raise bad("pad", "must be >= 0")
-    if not obj.base_inv_s > 0.0:
-        raise bad("base_inv_s", "must be > 0")
+
+
+#: The rules that tie several keys of one config class together.
+JOINT_RULES: dict[type, Callable[[Any, Callable[[str, str], ConfigError]], None]] = {
+    EncodingConfig: _check_encoding,
+    SDFConfig: _check_skips,
+    BackgroundConfig: _check_skips,
+    RenderConfig: _check_render,
+    OccupancyConfig: _check_occupancy,
+    SamplerConfig: _check_sampler,
+}
+
+
+def validate(obj: Any, prefix: str) -> None:
+    """Check one config dataclass (its nested ones are checked as they are built).
+
+    Raises:
+        ConfigError: ``PREFIX.key: value: why``.
+    """
+    def bad(name: str, why: str) -> ConfigError:
+        return ConfigError(f"{prefix}{name}: {why}")
+
+    _check_numbers(obj, bad)
+    joint = JOINT_RULES.get(type(obj))
+    if joint is not None:
+        joint(obj, bad)
