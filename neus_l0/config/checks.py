@@ -27,6 +27,7 @@ from neus_l0.config.schema import (
     SamplerConfig,
     SDFConfig,
     TrainConfig,
+    VarianceConfig,
 )
 from neus_l0.errors import ConfigError
 
@@ -107,6 +108,8 @@ RULES: dict[tuple[type, str], Range] = {
     (HullConfig, "margin_px"): at_least(0, "pixels"),
     (PointBoundConfig, "margin"): at_least(0),
     (PointBoundConfig, "min_views"): at_least(2),
+    (VarianceConfig, "init"): Range(-1.38, 1.38, note="s = exp(10 init) must stay inside "
+                                    "NeuS's clamp [1e-6, 1e6]"),
     (TrainConfig, "iters"): at_least(1),
     (TrainConfig, "batch_size"): at_least(1),
     (TrainConfig, "sample_budget"): at_least(0, "0: off"),

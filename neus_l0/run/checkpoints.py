@@ -50,6 +50,14 @@ def checkpoint_path(run_dir: str | Path, iteration: int) -> Path:
     return Path(run_dir) / "checkpoints" / f"ckpt_{iteration:07d}.pt"
 
 
+def checkpoint_iteration(path: Path) -> int:
+    """The iteration of a checkpoint file, from its name (``ckpt_0001200.pt`` -> 1200)."""
+    m = CKPT_RE.match(Path(path).name)
+    if m is None:
+        raise NeusL0Error(f"{path}: not a checkpoint name (ckpt_NNNNNNN.pt)")
+    return int(m.group(1))
+
+
 def list_checkpoints(run_dir: str | Path) -> list[Path]:
     """Checkpoints of a run, oldest first (temporary files of interrupted writes ignored)."""
     folder = Path(run_dir) / "checkpoints"

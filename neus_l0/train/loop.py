@@ -18,7 +18,6 @@ accumulated metrics are read back every ``train.log_every`` iterations only.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -35,8 +34,10 @@ from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields.model import make_model
 from neus_l0.run.checkpoints import (
+    checkpoint_iteration,
     checkpoint_path,
     latest_checkpoint,
+    list_checkpoints,
     load_newest_checkpoint,
     restore_training,
 )
@@ -67,6 +68,7 @@ from neus_l0.train.step import (
     render_and_loss,
     train_step,
 )
+from neus_l0.train.watchdog import Watchdog
 
 
 @dataclasses.dataclass
@@ -159,9 +161,6 @@ def metrics_line(run: RunState, acc: Tensor, steps: int, last: Tensor,
 
     The loop's only host synchronisation. Also sets the next batch size (from this step's
     samples alone, so that a resume stays exact).
-
-    Raises:
-        NeusL0Error: a non-finite mean (training diverged).
     """
     *values, step_samples = torch.cat([acc / steps, last[-1:]]).tolist()
     now = run.clock.elapsed()
@@ -171,11 +170,41 @@ def metrics_line(run: RunState, acc: Tensor, steps: int, last: Tensor,
     metrics.update(iter=run.iteration, lr=run.optimizer.param_groups[0]["lr"],
                    its_per_s=(run.iteration - window[1]) / max(now - window[0], 1e-9),
                    elapsed=now)
-    if not all(math.isfinite(v) for v in values):
-        raise NeusL0Error(f"{run.run_dir}: training diverged at iteration {run.iteration} "
-                          f"(loss {metrics['loss']}); resume from the last checkpoint with a "
-                          "lower train.lr")
     return metrics
+
+
+def watch(run: RunState, watchdog: Watchdog, metrics: dict) -> str | None:
+    """The watchdog's verdict on a log line; while the run is suspect, its last good
+    checkpoint is kept from pruning (`RunState.good_checkpoint`)."""
+    reason = watchdog.check(metrics)
+    good = watchdog.last_good_iter
+    if reason is None and good == run.iteration:
+        run.good_checkpoint = None  # healthy: pruning as usual
+    elif run.good_checkpoint is None:
+        kept = [p for p in list_checkpoints(run.run_dir)
+                if good is not None and checkpoint_iteration(p) <= good]
+        run.good_checkpoint = kept[-1] if kept else None
+    return reason
+
+
+def stop_diverged(run: RunState, watchdog: Watchdog, reason: str) -> NeusL0Error:
+    """Set aside the checkpoints written after the last good log line (``*.diverged``), so
+    that a resume starts from the last good one, and say what happened and what to try."""
+    run.diverged = True
+    good = watchdog.last_good_iter
+    kept = None
+    for p in list_checkpoints(run.run_dir):
+        if good is not None and checkpoint_iteration(p) <= good:
+            kept = p
+        else:
+            p.rename(p.with_name(p.name + ".diverged"))
+    lr = run.cfg.train.lr
+    where = (f"the last good checkpoint is {kept.name}; resume from it with a lower "
+             f"learning rate (--resume train.lr={lr / 10:g})" if kept is not None else
+             f"no good checkpoint was written; start again with a lower train.lr "
+             f"(e.g. {lr / 10:g})")
+    return NeusL0Error(f"{run.run_dir}: training diverged at iteration {run.iteration} "
+                       f"({reason}); {where}")
 
 
 def default_callbacks(cfg: Config, progress: bool, hooks: Sequence[Hook],
@@ -245,6 +274,8 @@ def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
     # renders and checkpoints, not the setup above.
     run.clock = Clock()
     window = (0.0, run.iteration)
+    # where the run starts is good: a resumed checkpoint passed the watchdog before
+    watchdog, diverged = Watchdog(last_good_iter=run.iteration or None), None
     run.model.train()
     while run.iteration < t.iters:
         # step
@@ -257,8 +288,12 @@ def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
         # log
         if run.iteration % t.log_every == 0 or run.iteration == t.iters:
             metrics = metrics_line(run, acc, steps, step, window)
+            reason = watch(run, watchdog, metrics)
             for cb in cbs:
                 cb.on_log(run, metrics)
+            if reason is not None:
+                diverged = stop_diverged(run, watchdog, reason)
+                break
             acc.zero_()
             steps, window = 0, (run.clock.elapsed(), run.iteration)
         # validate, checkpoint, snapshots
@@ -272,6 +307,8 @@ def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
             break
     for cb in cbs:
         cb.on_end(run)
+    if diverged is not None:
+        raise diverged
     if run.last_checkpoint != checkpoint_path(run.run_dir, run.iteration):
         run.save()
     snaps = next((cb.taken for cb in cbs if isinstance(cb, Snapshots)), [])

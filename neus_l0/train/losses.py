@@ -6,7 +6,6 @@ import math
 from typing import TYPE_CHECKING
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from neus_l0.config.schema import TrainConfig
@@ -49,7 +48,10 @@ def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
     Returns:
         () loss.
     """
-    return F.binary_cross_entropy(weight_sum.clip(1e-3, 1.0 - 1e-3), mask)
+    p = weight_sum.clip(1e-3, 1.0 - 1e-3)
+    # written out rather than F.binary_cross_entropy, which raises on a NaN opacity: a NaN
+    # here is a diverged run, which the loop's watchdog reports (as NaN) and stops
+    return -(mask * torch.log(p) + (1.0 - mask) * torch.log1p(-p)).mean()
 
 
 def eikonal(gradients: Tensor, mask: Tensor) -> Tensor:

@@ -69,6 +69,8 @@ class RunState:
     last_checkpoint: Path | None = None
     protected: set[Path] = dataclasses.field(default_factory=set)
     protect_snapshots: bool = False
+    good_checkpoint: Path | None = None  # while the watchdog suspects the run
+    diverged: bool = False
 
     @property
     def device(self) -> torch.device:
@@ -111,13 +113,18 @@ class RunState:
             state["scaler"] = self.scaler.state_dict()
         return state
 
-    def save(self) -> Path:
-        """Write the checkpoint of this iteration and prune the old ones."""
+    def save(self) -> Path | None:
+        """Write the checkpoint of this iteration and prune the old ones, never the
+        snapshots' nor, while the run is suspect, the last good one (`good_checkpoint`). A
+        diverged run writes nothing more."""
+        if self.diverged:
+            return self.last_checkpoint
         path = checkpoint_path(self.run_dir, self.iteration)
         keep = self.cfg.train.keep_checkpoints
-        if not self.protect_snapshots:
+        if not (self.protect_snapshots or self.good_checkpoint):
             self.last_checkpoint = save_checkpoint(path, self.checkpoint_state(), keep=keep)
         else:
             self.last_checkpoint = save_checkpoint(path, self.checkpoint_state(), keep=0)
-            prune_checkpoints(self.run_dir, keep, self.protected | {path})
+            good = {self.good_checkpoint} if self.good_checkpoint else set()
+            prune_checkpoints(self.run_dir, keep, self.protected | good | {path})
         return self.last_checkpoint
