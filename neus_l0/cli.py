@@ -23,6 +23,7 @@ COMMANDS: list[tuple[str, str]] = [
     ("colmap", "colmap"),
     ("train", "train"),
     ("mesh", "mesh"),
+    ("render", "render"),
     ("eval", "evaluate"),
     ("bench", "bench"),
     ("figures", "figures"),

@@ -1,0 +1,92 @@
+"""`neus-l0 render`: novel views of a trained run (orbit video, training or held-out views)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
+    p = sub.add_parser(name, help="render novel views of a trained run (frames, videos, PSNR)",
+                       description="Render colour, normals (camera frame) and depth "
+                                   "(camera z, colour-mapped) of a trained run inside its "
+                                   "visual hull: a turntable orbit at the training cameras' "
+                                   "mean distance and elevation (default), the training "
+                                   "views, or held-out views. Writes DIR/{color,normal,depth}/"
+                                   "NNNN.png and DIR/{color,normal,depth}.mp4; on training or "
+                                   "held-out views also PSNR and SSIM per view and their mean "
+                                   "(DIR/metrics.json). Prints one JSON line.")
+    p.add_argument("run", metavar="RUN", help="run folder written by `neus-l0 train`")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="output folder (default RUN/render/VIEWS)")
+    p.add_argument("--views", default="orbit", choices=["orbit", "train", "test"],
+                   help="orbit: turntable around the object (default); train: the training "
+                        "cameras; test: the held-out views (--test-views or --holdout)")
+    p.add_argument("--frames", type=int, default=60, help="orbit frames (60)")
+    p.add_argument("--elevation", type=float, default=None, metavar="DEG",
+                   help="orbit elevation in degrees (default the training cameras' mean)")
+    p.add_argument("--width", type=int, default=None, metavar="W",
+                   help="output width (alone: the height keeps the training aspect)")
+    p.add_argument("--height", type=int, default=None, metavar="H",
+                   help="output height (alone: the width keeps the training aspect)")
+    p.add_argument("--downscale", type=float, default=None, metavar="S",
+                   help="output = training image size / S (instead of --width/--height; "
+                        "default: the training size)")
+    p.add_argument("--test-views", default=None, metavar="I,J,...",
+                   help="held-out view indices, e.g. 0,8,16")
+    p.add_argument("--holdout", type=int, default=0, metavar="K",
+                   help="hold out every K-th view (views 0, K, 2K, ...; as `neus-l0 bench`)")
+    p.add_argument("--scene", default=None, metavar="DIR",
+                   help="scene folder (default the one RUN/run.json names)")
+    p.add_argument("--checkpoint", default=None,
+                   help="a specific checkpoint (default the newest that loads)")
+    p.add_argument("--device", default=None, choices=["cpu", "cuda"])
+    p.add_argument("--fps", type=float, default=24.0, help="video frame rate (24)")
+    p.add_argument("--no-video", dest="video", action="store_false",
+                   help="write the PNG frames only")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _test_views(text: str | None) -> tuple[int, ...] | None:
+    """``"0,8,16"`` -> (0, 8, 16).
+
+    Raises:
+        NeusL0Error: anything but comma-separated integers.
+    """
+    from neus_l0.errors import NeusL0Error
+
+    if text is None:
+        return None
+    try:
+        views = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise NeusL0Error(f"--test-views {text!r}: give comma-separated view indices, "
+                          "e.g. 0,8,16") from None
+    if not views:
+        raise NeusL0Error(f"--test-views {text!r}: no view index given")
+    return views
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import sys
+
+    from neus_l0.commands._paths import check_output_dir
+    from neus_l0.device import pick_device
+    from neus_l0.render.from_run import RenderOptions, render_run
+
+    options = RenderOptions(
+        views=args.views, frames=args.frames, elevation=args.elevation, width=args.width,
+        height=args.height, downscale=args.downscale, fps=args.fps, video=args.video,
+        test_views=_test_views(args.test_views), holdout=args.holdout, scene=args.scene,
+        checkpoint=args.checkpoint)
+    options.check()
+    out = check_output_dir(args.out, "--out") if args.out else None
+    result = render_run(args.run, out, options, pick_device(args.device),
+                        progress=not args.quiet)
+    H, W = result.size
+    print(f"neus-l0 render: {result.frames} frames of {W}x{H} in {result.seconds:.1f} s "
+          f"({result.seconds / max(result.frames, 1):.2f} s/frame) -> {result.out}",
+          file=sys.stderr)
+    print(json.dumps(result.summary()), flush=True)
+    return 0
