@@ -6,6 +6,7 @@ import math
 from typing import TYPE_CHECKING
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from neus_l0.config.schema import TrainConfig
@@ -48,10 +49,10 @@ def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
     Returns:
         () loss.
     """
-    p = weight_sum.clip(1e-3, 1.0 - 1e-3)
-    # written out rather than F.binary_cross_entropy, which raises on a NaN opacity: a NaN
-    # here is a diverged run, which the loop's watchdog reports (as NaN) and stops
-    return -(mask * torch.log(p) + (1.0 - mask) * torch.log1p(-p)).mean()
+    # F.binary_cross_entropy raises on a NaN input; a NaN opacity is a diverged run, which
+    # the colour loss shows as NaN too and the loop's watchdog stops, so it is read as 0.5
+    p = torch.nan_to_num(weight_sum, nan=0.5).clip(1e-3, 1.0 - 1e-3)
+    return F.binary_cross_entropy(p, mask)
 
 
 def eikonal(gradients: Tensor, mask: Tensor) -> Tensor:
