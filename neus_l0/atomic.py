@@ -1,7 +1,10 @@
 """Atomic file writes: write to a temporary file in the same folder, then rename.
 
 A reader (or a resumed run) therefore sees either the previous complete file or the new
-complete file, never a truncated one, even if the process is killed mid-write.
+complete file, never a truncated one, even if the process is killed mid-write. The file gets
+the mode a plain ``open`` would give it (0644 under umask 022), not the temporary file's
+private 0600. A writer killed mid-write leaves its temporary file (``.NAME.XXXX.tmp.SUFFIX``)
+behind; `remove_orphans` clears them where one writer owns the folder (a locked run folder).
 """
 
 from __future__ import annotations
@@ -32,10 +35,36 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         yield tmp_path
         with open(tmp_path, "rb+") as f:
             os.fsync(f.fileno())
+        os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def _umask() -> int:
+    """The process's file-creation mask (read by setting it and putting it back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def orphan_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """The temporary files `atomic_path` left in `folder` (not its subfolders)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir()
+                  if p.is_file() and p.name.startswith(".") and ".tmp" in p.name)
+
+
+def remove_orphans(folder: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files a killed writer left in `folder`; only where no other
+    writer can be at work (a run folder under its lock). Returns what was removed."""
+    removed = orphan_temporaries(folder)
+    for p in removed:
+        p.unlink(missing_ok=True)
+    return removed
 
 
 def atomic_write(path: str | os.PathLike, writer: Callable[[Path], Any]) -> Path:

@@ -18,6 +18,7 @@ accumulated metrics are read back every ``train.log_every`` iterations only.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -25,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from neus_l0.atomic import atomic_write_json, atomic_write_text
+from neus_l0.atomic import atomic_write_json, atomic_write_text, remove_orphans
 from neus_l0.bounds.pixel_pool import reachable_pixels
 from neus_l0.bounds.static import static_bounds
 from neus_l0.config.load import dump_config
@@ -118,6 +119,12 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     if not resume and latest_checkpoint(run_dir) is not None:
         raise NeusL0Error(f"{run_dir}: already holds checkpoints; pass --resume to continue "
                           "or choose another --out")
+    # the run folder is locked: a temporary file in it is a killed writer's leftover
+    left = [p for d in (run_dir, run_dir / "checkpoints", run_dir / "validation")
+            for p in remove_orphans(d)]
+    if left:
+        print(f"neus-l0: removed {len(left)} temporary file(s) a killed run left behind, e.g. "
+              f"{left[0]}", file=sys.stderr, flush=True)
     found = load_newest_checkpoint(run_dir, map_location=device) if resume else None
     if resume and found is None:
         raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
@@ -126,9 +133,9 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     scene = scene.to(device)
     model = make_model(cfg, device)
     run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
-                     optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
-                     generator=torch.Generator(device=device),
-                     occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
+                   optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
+                   generator=torch.Generator(device=device),
+                   occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
     run.generator.manual_seed(cfg.train.seed)
     run.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
     run.setup.bounds = static_bounds(scene, cfg, run_dir)
