@@ -19,7 +19,7 @@ from neus_l0.errors import ConfigError
     "train.val_downscale=0", "train.keep_checkpoints=-1", "train.mask_weight=-0.1",
     "train.eikonal_fraction=0", "data.downscale=0", "render.n_samples=1",
     "render.hull.resolution=4", "render.hull.margin_px=-1", "model.variance.init=.nan",
-    "model.sdf.skip=[9]", "model.sdf.encoding.log2_hashmap_size=40", "train.seed=-1",
+    "model.sdf.skip=[-1]", "model.sdf.encoding.log2_hashmap_size=40", "train.seed=-1",
     "render.occupancy.update_every=0", "sampler.base_inv_s=0",
 ])
 def test_a_number_that_cannot_work_is_refused_naming_its_key(override):

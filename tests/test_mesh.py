@@ -102,5 +102,5 @@ def test_extract_mesh_with_colours_and_export(tmp_path):
         back = trimesh.load(p, force="mesh")
         assert len(back.faces) == len(mesh.faces)
     with pytest.raises(NeusL0Error, match="unsupported"):
-        export_mesh(mesh, tmp_path / "m.stl")
+        export_mesh(mesh, tmp_path / "m.fbx")
     assert sorted(x.name for x in tmp_path.iterdir()) == ["m.obj", "m.ply"]  # no temp files

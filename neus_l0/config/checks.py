@@ -155,9 +155,11 @@ def _check_encoding(obj: EncodingConfig, bad: Callable[[str, str], ConfigError])
 
 def _check_skips(obj: SDFConfig | BackgroundConfig, bad: Callable[[str, str], ConfigError]
                  ) -> None:
-    wrong = [i for i in obj.skip if not 0 <= i <= obj.layers]
+    # an index past the last layer is no skip at all (the networks ignore it), so a smaller
+    # `layers` need not touch `skip`; a negative one is a mistake
+    wrong = [i for i in obj.skip if i < 0]
     if wrong:
-        raise bad("skip", f"{wrong}: layer indices must be in [0, layers={obj.layers}]")
+        raise bad("skip", f"{wrong}: layer indices must be >= 0")
 
 
 def _check_render(obj: RenderConfig, bad: Callable[[str, str], ConfigError]) -> None:
