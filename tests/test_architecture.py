@@ -130,7 +130,7 @@ def test_lower_rooms_never_import_the_rooms_above_them():
     the commands."""
     above = {"train", "bench", "figures", "study", "commands", "cli"}
     below = {"config", "data", "fields", "sampling", "bounds", "render", "run", "mesh",
-             "evaluation", "photos"}
+             "evaluation", "photos", "formats"}
     for m, targets in GRAPH.items():
         if _room(m) in below:
             assert not {_room(t) for t in targets} & above, m

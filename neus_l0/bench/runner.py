@@ -352,7 +352,7 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
 
     from neus_l0.bench.holdout import split_views, subset_scene
     from neus_l0.bench.sample_distance import SampleDistanceHook, SurfaceDistance
-    from neus_l0.data.scene import load_scene
+    from neus_l0.formats.open import open_scene
     from neus_l0.mesh.extract import export_mesh
     from neus_l0.mesh.from_run import mesh_from_run
     from neus_l0.train.loop import train
@@ -361,7 +361,8 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
         torch.set_num_threads(spec.threads)
     run_dir = spec.run_dir
     timings = {}
-    full = load_scene(spec.scene_dir, downscale=cfg.data.downscale, device=spec.device)
+    full = open_scene(spec.scene_dir, downscale=cfg.data.downscale, device=spec.device,
+                      preview=False)
     train_views, test_views = split_views(full.n_views, spec.holdout)
     train_scene = subset_scene(full, train_views)
     surface = SurfaceDistance.from_scene_dir(spec.scene_dir)

@@ -1,4 +1,5 @@
-"""`neus-l0 inspect DATA`: validate a NeuS-format scene and print a summary."""
+"""`neus-l0 inspect DATA`: validate a scene (NeuS format or transforms.json) and print a
+summary."""
 
 from __future__ import annotations
 
@@ -8,13 +9,18 @@ import json
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
     p = sub.add_parser(
-        name, help="validate a NeuS-format scene and print a summary",
-        description="Check a NeuS-format scene folder (image/, mask/, cameras_sphere.npz): "
-                    "every image and mask readable and the same size, one camera per image, "
-                    "finite and non-singular projections. Prints views, resolution, mask "
-                    "coverage, the object sphere (world units) and the camera distances "
-                    "(normalised units, where the object sphere is the unit sphere).")
-    p.add_argument("data", help="scene folder")
+        name, help="validate a scene and print a summary",
+        description="Check a scene folder, NeuS format (image/, mask/, cameras_sphere.npz) or "
+                    "transforms.json (NeRF-synthetic, instant-ngp, nerfstudio): every image "
+                    "and mask readable and the same size, one camera per image, finite and "
+                    "non-singular cameras. Prints the format, views, resolution, where the "
+                    "masks come from and their coverage, the object sphere (world units; for "
+                    "transforms.json, how it was found, with sphere_preview.png) and the "
+                    "camera distances (normalised units, where the object sphere is the unit "
+                    "sphere).")
+    p.add_argument("data", help="scene folder (or a transforms JSON file)")
+    p.add_argument("--split", choices=("train", "val", "test"), default="train",
+                   help="the split of a transforms.json scene (default train)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("--hull", metavar="OUT.ply", default=None,
                    help="carve the visual hull from the masks and write it as a watertight "
@@ -33,18 +39,29 @@ def format_summary(info: dict) -> str:
     cov = info["mask_coverage"]
     dist = info["camera_distance"]
     c = info["sphere_center"]
+    fmt = info.get("format", "neus")
+    source = {"mask/": "mask/", "alpha": "images' alpha", "mask_path": "mask_path files"}.get(
+        info.get("mask_source", "mask/"), info.get("mask_source", "mask/"))
+    split = f", {info['split']} split" if info.get("split") else ""
     lines = [
         f"scene        {info['root']}",
-        f"views        {info['views']}  ({info['camera_file']})",
+        f"format       {'NeuS' if fmt == 'neus' else fmt + ' transforms.json'}",
+        f"views        {info['views']}  ({info['camera_file']}{split})",
         f"resolution   {info['width']} x {info['height']}",
-        ("masks        foreground {:.1%} mean ({:.1%} .. {:.1%})".format(
-            cov["mean"], cov["min"], cov["max"]) if info["has_masks"]
+        ("masks        foreground {:.1%} mean ({:.1%} .. {:.1%}), from {}".format(
+            cov["mean"], cov["min"], cov["max"], source) if info["has_masks"]
          else "masks        none (all pixels count as foreground)"),
         f"object       sphere radius {info['sphere_radius']:.4g} world units, "
         f"centre ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g})",
         f"cameras      distance {dist['mean']:.3f} mean ({dist['min']:.3f} .. {dist['max']:.3f}) "
         f"sphere radii; focal {info['focal']['min']:.1f} .. {info['focal']['max']:.1f} px",
     ]
+    if "sphere_method" in info:
+        lines.append(f"sphere from  {info['sphere_method']}: {info['sphere_detail']}")
+    if info.get("preview"):
+        lines.append(f"preview      {info['preview']}")
+    if info.get("undistorted"):
+        lines.append(f"cameras      {info['undistorted']}")
     lines += [f"warning      {w}" for w in info["warnings"]]
     if "hull" in info:
         h = info["hull"]
@@ -56,10 +73,9 @@ def format_summary(info: dict) -> str:
     return "\n".join(lines)
 
 
-def _hull(args: argparse.Namespace) -> dict:
+def _hull(args: argparse.Namespace, scene) -> dict:
     """Carve the scene's visual hull, write its mesh, return the report as a dict."""
     from neus_l0.bounds.hull import DEFAULT_MARGIN_PX, DEFAULT_RESOLUTION, hull_from_scene
-    from neus_l0.data.scene import load_scene
     from neus_l0.errors import NeusL0Error
     from neus_l0.mesh.extract import export_mesh
 
@@ -67,23 +83,24 @@ def _hull(args: argparse.Namespace) -> dict:
     margin = DEFAULT_MARGIN_PX if args.hull_margin is None else args.hull_margin
     if not 4 <= R <= 1024:
         raise NeusL0Error(f"--hull-resolution {R}: use 4 .. 1024")
-    scene = load_scene(args.data)
     if not scene.has_masks:
-        raise NeusL0Error(f"{args.data}: no 'mask/' folder, so there is no visual hull")
+        raise NeusL0Error(f"{args.data}: no masks (no 'mask/' folder, mask_path or alpha), so "
+                          f"there is no visual hull")
     hull = hull_from_scene(scene, resolution=R, margin_px=margin)
     export_mesh(hull.to_mesh(scene.scale_mat), args.hull)
     return dict(hull.report.to_dict(), mesh=str(args.hull), resolution=R, margin_px=margin)
 
 
 def run(args: argparse.Namespace) -> int:
-    from neus_l0.data.scene import validate_scene
+    from neus_l0.formats.open import open_scene, summarise
 
     if args.hull is None and (args.hull_resolution is not None or args.hull_margin is not None):
         from neus_l0.errors import NeusL0Error
 
         raise NeusL0Error("--hull-resolution and --hull-margin need --hull OUT.ply")
-    info = validate_scene(args.data)
+    scene = open_scene(args.data, split=args.split)
+    info = summarise(scene)
     if args.hull is not None:
-        info["hull"] = _hull(args)
+        info["hull"] = _hull(args, scene)
     print(json.dumps(info, indent=2) if args.json else format_summary(info))
     return 0

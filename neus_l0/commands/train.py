@@ -1,4 +1,4 @@
-"""`neus-l0 train`: train NeuS on a NeuS-format scene."""
+"""`neus-l0 train`: train NeuS on a scene (NeuS format or transforms.json)."""
 
 from __future__ import annotations
 
@@ -9,12 +9,16 @@ from neus_l0.commands._overrides import accept_overrides
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
     p = sub.add_parser(name, help="train NeuS on a scene",
-                       description="Train NeuS on a NeuS-format scene folder. The "
+                       description="Train NeuS on a scene folder: NeuS format or "
+                                   "transforms.json (NeRF-synthetic, instant-ngp, nerfstudio; "
+                                   "the object sphere is then found from the masks or "
+                                   "cameras, see neus-l0 inspect). The "
                                    "up-sampling draw is the config's `sampler`: wmask/womask "
                                    "use NeuS's own (hvs) as the reference; add sampler=l0 for "
                                    "the L0-Sampler. `neus-l0 config show --conf CONF "
                                    "[key=value ...]` lists every key with its meaning.")
-    p.add_argument("data", metavar="DATA", help="scene folder (image/, mask/, cameras_sphere.npz)")
+    p.add_argument("data", metavar="DATA",
+                   help="scene folder (image/, mask/, cameras_sphere.npz; or transforms.json)")
     p.add_argument("--conf", default="wmask",
                    help="config: a YAML path, confs/NAME.yaml or a built-in NAME "
                         "(wmask, womask, demo); default wmask")
@@ -33,8 +37,8 @@ def run(args: argparse.Namespace) -> int:
 
     from neus_l0.commands._paths import check_output_dir
     from neus_l0.config.load import load_config
-    from neus_l0.data.scene import load_scene
     from neus_l0.device import pick_device
+    from neus_l0.formats.open import open_scene
     from neus_l0.train.loop import train
 
     run_dir = check_output_dir(args.out, "--out")
@@ -42,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
         else args.conf
     cfg = load_config(conf, args.overrides)
     device = pick_device(args.device)
-    scene = load_scene(args.data, downscale=cfg.data.downscale, device=device)
+    scene = open_scene(args.data, downscale=cfg.data.downscale, device=device)
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
                    progress=not args.quiet)
     if result.signal:

@@ -1,5 +1,6 @@
 """Cameras and frames: NeuS camera files, projections, camera-z depth, the world/normalised
-frame conversion, look-at poses and a DTU-like camera cap.
+frame conversion, look-at poses, the optical axes' convergence point and a DTU-like camera
+cap.
 
 Conventions (OpenCV / NeuS): camera x right, y down, z forward; a 3x4 projection
 ``P = K [R | t]`` maps homogeneous world points to homogeneous pixels; pixel (x, y) is
@@ -46,6 +47,33 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     c2w[:3, :3] = R.T
     c2w[:3, 3] = (t[:3] / t[3])[:, 0]
     return K, c2w
+
+
+def axes_convergence(centres: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Least-squares point closest to all lines ``centres_i + s * dirs_i``.
+
+    Minimises ``sum_i |(I - d_i d_i^T)(p - c_i)|^2``, i.e. solves
+    ``(sum_i A_i) p = sum_i A_i c_i`` with ``A_i = I - d_i d_i^T``.
+
+    Args:
+        centres: (N, 3) points on the lines (camera centres).
+        dirs: (N, 3) line directions (need not be unit length), not all parallel.
+
+    Returns:
+        (3,) the closest point.
+
+    Raises:
+        ValueError: all lines parallel (the system is singular).
+    """
+    c = np.asarray(centres, dtype=np.float64)
+    d = np.asarray(dirs, dtype=np.float64)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    A = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # (N, 3, 3)
+    lhs = A.sum(0)
+    rhs = np.einsum("nij,nj->i", A, c)
+    if np.linalg.cond(lhs) > 1e10:
+        raise ValueError("axes_convergence: the optical axes are (nearly) parallel")
+    return np.linalg.solve(lhs, rhs)
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:

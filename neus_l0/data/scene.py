@@ -14,6 +14,11 @@ NeuS's pixel-centre-at-integer convention therefore needs
 downscaled pixel centre is exactly the ray through the centre of the block it averages.
 (NeuS itself only divides K by ``s``, which shifts rays by (s-1)/2 old pixels.) Masks are
 block-averaged the same way and kept as soft coverage in [0, 1].
+
+Images with an alpha channel (RGBA PNGs). Colour is composited over black
+(``rgb * alpha``, the renderer's default background). Without a ``mask/`` folder, the masks
+are ``alpha > 0.5`` (one line on stderr says so), unless the alpha is opaque everywhere (then
+there are no masks); with one, ``mask/`` wins. Either every image carries alpha or none does.
 """
 
 from __future__ import annotations
@@ -65,6 +70,9 @@ class Scene:
             (the object's bounding sphere is the unit sphere).
         scale_mat: (4, 4) float64 numpy, normalised -> world (``scale_mat_0``).
         image_names: file names of the images, in view order.
+        info: how the scene was read (``format``, ``masks`` = where the masks came from,
+            and for non-NeuS formats the file and how the sphere was found); free-form,
+            for summaries.
     """
 
     root: Path
@@ -75,6 +83,7 @@ class Scene:
     c2w: torch.Tensor
     scale_mat: np.ndarray
     image_names: list[str]
+    info: dict = dataclasses.field(default_factory=dict)
 
     @property
     def n_views(self) -> int:
@@ -145,14 +154,41 @@ def find_files(root: str | Path) -> tuple[list[Path], list[Path] | None, Path]:
     raise SceneError(f"{root}: no camera file ({' or '.join(CAMERA_FILES)})")
 
 
-def _read_image(path: Path, shape: tuple[int, int] | None) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+def read_image(path: Path, shape: tuple[int, int] | None = None
+               ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read an image as RGB in [0, 1] and its alpha channel, if it has one.
+
+    8- and 16-bit PNG/JPEG, grey, grey + alpha, colour and colour + alpha all work.
+
+    Args:
+        path: the image file.
+        shape: (H, W) it must have (None: any).
+
+    Returns:
+        rgb: (H, W, 3) float32 in [0, 1], *not* composited (straight colour).
+        alpha: (H, W) float32 in [0, 1], or None without an alpha channel.
+
+    Raises:
+        SceneError: unreadable, or not of `shape`.
+    """
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise SceneError(f"{path}: unreadable image")
     if shape is not None and img.shape[:2] != shape:
         raise SceneError(f"{path}: size {img.shape[1]}x{img.shape[0]} differs from "
                          f"{shape[1]}x{shape[0]} of the first image")
-    return img
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype, 1.0)
+    img = img.astype(np.float32) / np.float32(scale)
+    if img.ndim == 2:
+        img = img[..., None]
+    alpha = None
+    if img.shape[2] in (2, 4):
+        img, alpha = img[..., :-1], np.ascontiguousarray(img[..., -1])
+    if img.shape[2] == 1:
+        rgb = np.repeat(img, 3, axis=2)
+    else:
+        rgb = np.ascontiguousarray(img[..., 2::-1])  # BGR -> RGB
+    return rgb, alpha
 
 
 def _read_cameras(path: Path, n_views: int) -> tuple[np.ndarray, np.ndarray]:
@@ -196,19 +232,20 @@ def _read_cameras(path: Path, n_views: int) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(Ps), scale_mat0
 
 
-def _downscale_matrix(s: int) -> np.ndarray:
+def downscale_matrix(s: int) -> np.ndarray:
+    """(3, 3) S with ``K_new = S @ K`` for an integer downscale `s` (module docstring)."""
     off = -(s - 1) / (2.0 * s)
     return np.array([[1.0 / s, 0.0, off], [0.0, 1.0 / s, off], [0.0, 0.0, 1.0]])
 
 
-def _area_downscale(a: np.ndarray, s: int) -> np.ndarray:
+def area_downscale(a: np.ndarray, s: int) -> np.ndarray:
     """Crop (H, W, ...) to multiples of s and block-average with cv2.INTER_AREA."""
     h, w = (a.shape[0] // s) * s, (a.shape[1] // s) * s
     a = a[:h, :w]
     return cv2.resize(a, (w // s, h // s), interpolation=cv2.INTER_AREA)
 
 
-def _check_empty_masks(empty: list[Path], n_views: int, root: Path) -> None:
+def check_empty_masks(empty: list[Path], n_views: int, where: Path) -> None:
     """Warn (one line on stderr) about empty masks; refuse a scene whose masks are all empty.
 
     An empty mask is true data when the object has left a view's frame: every pixel of
@@ -217,12 +254,95 @@ def _check_empty_masks(empty: list[Path], n_views: int, root: Path) -> None:
     if not empty:
         return
     if len(empty) == n_views:
-        raise SceneError(f"{root / 'mask'}: every mask is empty (no pixel > 127), e.g. "
+        raise SceneError(f"{where}: every mask is empty (no foreground pixel), e.g. "
                          f"{empty[0]}")
     names = ", ".join(p.name for p in empty[:8]) + (", ..." if len(empty) > 8 else "")
-    print(f"neus-l0: warning: {empty[0].parent}: {len(empty)} of {n_views} masks are empty "
-          f"(no pixel > 127): {names}; those views count as all background",
+    print(f"neus-l0: warning: {where}: {len(empty)} of {n_views} masks are empty "
+          f"(no foreground pixel): {names}; those views count as all background",
           file=sys.stderr, flush=True)
+
+
+def read_views(paths: list[Path], shape: tuple[int, int], s: int = 1
+               ) -> tuple[np.ndarray, list[np.ndarray | None]]:
+    """Read images (composited over black where they carry alpha) and downscale them by `s`.
+
+    Args:
+        paths: image files, all of size `shape` (H, W).
+        s: integer downscale (`area_downscale`).
+
+    Returns:
+        images: (n, H // s, W // s, 3) float32 RGB in [0, 1], ``rgb * alpha`` with alpha.
+        alpha_masks: per image, ``alpha > 0.5`` as float32 (H // s, W // s), block-averaged
+            like a mask file (soft coverage after a downscale), or None without alpha.
+    """
+    H, W = shape
+    images = np.empty((len(paths), H // s, W // s, 3), np.float32)
+    alpha_masks: list[np.ndarray | None] = []
+    for i, p in enumerate(paths):
+        rgb, alpha = read_image(p, shape)
+        fg = None
+        if alpha is not None:
+            rgb = rgb * alpha[..., None]
+            fg = (alpha > 0.5).astype(np.float32)
+            fg = area_downscale(fg, s) if s > 1 else fg
+        images[i] = area_downscale(rgb, s) if s > 1 else rgb
+        alpha_masks.append(fg)
+    return images, alpha_masks
+
+
+def read_masks(paths: list[Path], shape: tuple[int, int], s: int = 1
+               ) -> tuple[np.ndarray, list[Path]]:
+    """Read mask images (foreground: any channel > 0.5, i.e. > 127 in 8 bits), downscaled.
+
+    Returns:
+        masks: (n, H // s, W // s) float32 coverage in [0, 1].
+        empty: the files without any foreground pixel.
+    """
+    H, W = shape
+    masks = np.empty((len(paths), H // s, W // s), np.float32)
+    empty = []
+    for i, p in enumerate(paths):
+        m, _ = read_image(p, shape)
+        fg = (m.max(axis=-1) > 0.5).astype(np.float32)
+        if not fg.any():
+            empty.append(p)
+        masks[i] = area_downscale(fg, s) if s > 1 else fg
+    return masks, empty
+
+
+def masks_from_alpha(alpha_masks: list[np.ndarray | None], paths: list[Path]
+                     ) -> tuple[np.ndarray | None, str]:
+    """The masks of images with alpha (one line on stderr says which masks a scene uses).
+
+    Args:
+        alpha_masks: per image, the coverage of ``alpha > 0.5`` (`read_views`) or None.
+        paths: the images (for the messages).
+
+    Returns:
+        masks: (n, H, W) float32 or None (no image has alpha, or the alpha is opaque
+            everywhere); and the source: ``"alpha"`` or ``"none"``.
+
+    Raises:
+        SceneError: some images carry alpha and others do not, or every alpha is empty.
+    """
+    have = [a is not None for a in alpha_masks]
+    if not any(have):
+        return None, "none"
+    if not all(have):
+        odd = paths[have.index(not have[0])]
+        raise SceneError(f"{odd}: {'no' if have[0] else 'an'} alpha channel, unlike "
+                         f"{paths[0].name}: give every image alpha or none")
+    masks = np.stack(alpha_masks)
+    where = paths[0].parent
+    if masks.min() >= 1.0:
+        print(f"neus-l0: {where}: images carry alpha but it is opaque everywhere: no masks",
+              file=sys.stderr, flush=True)
+        return None, "none"
+    empty = [p for p, m in zip(paths, masks, strict=True) if not m.any()]
+    check_empty_masks(empty, len(paths), where)
+    print(f"neus-l0: {where}: masks from the images' alpha channel (alpha > 0.5; colour "
+          f"composited over black)", file=sys.stderr, flush=True)
+    return masks, "alpha"
 
 
 def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device = "cpu") -> Scene:
@@ -247,29 +367,22 @@ def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
     n = len(image_paths)
     P, scale_mat = _read_cameras(cam_path, n)
 
-    first = _read_image(image_paths[0], None)
-    H, W = first.shape[:2]
+    first = read_image(image_paths[0], None)
+    H, W = first[0].shape[:2]
     if H < s or W < s:
         raise SceneError(f"{image_paths[0]}: {W}x{H} is too small for downscale {s}")
-    Hs, Ws = H // s, W // s
-    images = np.empty((n, Hs, Ws, 3), np.float32)
-    masks = np.ones((n, Hs, Ws), np.float32)
-    for i, p in enumerate(image_paths):
-        img = first if i == 0 else _read_image(p, (H, W))
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
-        images[i] = _area_downscale(img, s) if s > 1 else img
+    images, alpha_masks = read_views(image_paths, (H, W), s)
     if mask_paths is not None:
-        empty = []
-        for i, p in enumerate(mask_paths):
-            m = _read_image(p, (H, W))
-            fg = (m.max(axis=-1) > 127).astype(np.float32)
-            if not fg.any():
-                empty.append(p)
-            masks[i] = _area_downscale(fg, s) if s > 1 else fg
-        _check_empty_masks(empty, n, root)
+        masks, empty = read_masks(mask_paths, (H, W), s)
+        check_empty_masks(empty, n, root / "mask")
+        source = "mask/"
+    else:
+        masks, source = masks_from_alpha(alpha_masks, image_paths)
+    if masks is None:
+        masks = np.ones((n, H // s, W // s), np.float32)
 
     Ks, c2ws = [], []
-    S = _downscale_matrix(s)
+    S = downscale_matrix(s)
     for i in range(n):
         K, c2w = decompose_projection(P[i])
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(c2w))):
@@ -281,30 +394,36 @@ def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
         root=root,
         images=torch.from_numpy(images).to(dev),
         masks=torch.from_numpy(masks).to(dev),
-        has_masks=mask_paths is not None,
+        has_masks=source != "none",
         intrinsics=torch.from_numpy(np.stack(Ks)).float().to(dev),
         c2w=torch.from_numpy(np.stack(c2ws)).float().to(dev),
         scale_mat=scale_mat,
         image_names=[p.name for p in image_paths],
+        info={"format": "neus", "camera_file": cam_path.name, "masks": source,
+              "mask_files": [f"mask/{p.name}" for p in mask_paths or []]},
     )
 
 
 def validate_scene(root: str | Path) -> dict:
-    """Load a scene fully (raising `SceneError` on any problem) and summarise it.
+    """Load a NeuS-format scene fully (raising `SceneError` on any problem) and summarise it
+    (`scene_summary`)."""
+    return scene_summary(load_scene(root))
+
+
+def scene_summary(scene: Scene) -> dict:
+    """Summarise a loaded scene (what `neus-l0 inspect` prints).
 
     Returns:
-        A JSON-serialisable dict: ``root``, ``camera_file``, ``views``, ``width``,
-        ``height``, ``has_masks``, ``mask_coverage`` (min/mean/max foreground fraction),
+        A JSON-serialisable dict: ``root``, ``format``, ``camera_file``, ``views``,
+        ``width``, ``height``, ``has_masks``, ``mask_source`` (``mask/``, ``alpha``,
+        ``mask_path`` or ``none``), ``mask_coverage`` (min/mean/max foreground fraction),
         ``sphere_center`` and ``sphere_radius`` (world units), ``camera_distance``
         (min/mean/max in normalised units), ``focal`` (min/max, pixels), ``empty_masks``
         (views whose mask is empty), ``warnings`` (cameras inside the unit sphere or
         looking away from it, empty masks).
     """
-    root = Path(root)
-    scene = load_scene(root)
-    _, mask_paths, cam_path = find_files(root)
-    centres = scene.c2w[:, :3, 3].double().numpy()
-    axes = scene.c2w[:, :3, 2].double().numpy()
+    centres = scene.c2w[:, :3, 3].double().cpu().numpy()
+    axes = scene.c2w[:, :3, 2].double().cpu().numpy()
     dist = np.linalg.norm(centres, axis=-1)
     # distance of the origin from each optical axis, and whether it lies in front
     along = -(centres * axes).sum(-1)
@@ -316,21 +435,26 @@ def validate_scene(root: str | Path) -> dict:
     away = np.nonzero((along <= 0) | (miss > 1.0))[0]
     if away.size:
         warnings.append(f"optical axis misses the unit sphere: views {away.tolist()}")
-    cover = scene.masks.mean(dim=(1, 2)).numpy()
+    cover = scene.masks.mean(dim=(1, 2)).cpu().numpy()
     empty = np.nonzero(cover == 0)[0] if scene.has_masks else np.zeros(0, np.int64)
     if empty.size:
-        names = [mask_paths[i].name for i in empty]
+        files = scene.info.get("mask_files")
+        names = ([files[i] for i in empty] if files
+                 else [f"alpha of {scene.image_names[i]}" for i in empty])
         warnings.append(f"empty masks (all background in those views): views "
-                        f"{empty.tolist()} (mask/{', mask/'.join(names)})")
+                        f"{empty.tolist()} ({', '.join(names)})")
     sm = scene.scale_mat
-    fx = scene.intrinsics[:, 0, 0].double().numpy()
+    fx = scene.intrinsics[:, 0, 0].double().cpu().numpy()
+    info = scene.info
     return {
-        "root": str(root),
-        "camera_file": cam_path.name,
+        "root": str(scene.root),
+        "format": info.get("format", "neus"),
+        "camera_file": info.get("camera_file", ""),
         "views": scene.n_views,
         "width": scene.width,
         "height": scene.height,
         "has_masks": scene.has_masks,
+        "mask_source": info.get("masks", "mask/" if scene.has_masks else "none"),
         "mask_coverage": {"min": float(cover.min()), "mean": float(cover.mean()),
                           "max": float(cover.max())},
         "sphere_center": [float(v) for v in sm[:3, 3]],

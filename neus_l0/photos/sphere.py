@@ -3,7 +3,8 @@
 How the sphere is chosen (`choose_sphere`):
 
 1. The *convergence point* c0: the least-squares closest point to all optical axes
-   (`axes_convergence`). Photos taken around an object aim at it, so c0 lies near the object.
+   (`neus_l0.data.cameras.axes_convergence`). Photos taken around an object aim at it, so
+   c0 lies near the object.
 2. Candidate points: sparse points seen by at least `min_views` views, lying in front of
    the cameras and closer to c0 than `near_fraction` x the median camera distance to c0.
    This drops stray points and the far background (walls, sky, a backdrop).
@@ -23,6 +24,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+
+from neus_l0.data.cameras import axes_convergence
 
 
 @dataclasses.dataclass
@@ -61,33 +64,6 @@ class SphereChoice:
         if self.capped:
             text += "; radius capped to keep every camera outside the sphere"
         return text
-
-
-def axes_convergence(centres: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Least-squares point closest to all lines ``centres_i + s * dirs_i``.
-
-    Minimises ``sum_i |(I - d_i d_i^T)(p - c_i)|^2``, i.e. solves
-    ``(sum_i A_i) p = sum_i A_i c_i`` with ``A_i = I - d_i d_i^T``.
-
-    Args:
-        centres: (N, 3) points on the lines (camera centres).
-        dirs: (N, 3) line directions (need not be unit length), not all parallel.
-
-    Returns:
-        (3,) the closest point.
-
-    Raises:
-        ValueError: all lines parallel (the system is singular).
-    """
-    c = np.asarray(centres, dtype=np.float64)
-    d = np.asarray(dirs, dtype=np.float64)
-    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    A = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # (N, 3, 3)
-    lhs = A.sum(0)
-    rhs = np.einsum("nij,nj->i", A, c)
-    if np.linalg.cond(lhs) > 1e10:
-        raise ValueError("axes_convergence: the optical axes are (nearly) parallel")
-    return np.linalg.solve(lhs, rhs)
 
 
 def choose_sphere(points: np.ndarray, track_len: np.ndarray, centres: np.ndarray,

@@ -28,8 +28,9 @@ import torch
 
 from neus_l0.atomic import atomic_path, atomic_write_json, atomic_write_png
 from neus_l0.bounds.hull import VisualHull, load_run_hull
-from neus_l0.data.scene import Scene, load_scene
+from neus_l0.data.scene import Scene
 from neus_l0.errors import NeusL0Error
+from neus_l0.formats.open import open_scene
 from neus_l0.render.cameras import (
     depth_range,
     mean_intrinsics,
@@ -252,7 +253,7 @@ def run_scene(run_dir: Path, options: RenderOptions, downscale: int) -> Scene:
     if not root.is_dir():
         where = "--scene" if options.scene is not None else f"{meta_path}: scene"
         raise NeusL0Error(f"{where} {root}: no such folder (moved? pass --scene DIR)")
-    scene = load_scene(root, downscale=downscale)
+    scene = open_scene(root, downscale=downscale, preview=False, log=lambda _line: None)
     if meta is not None and "scale_mat" in meta:
         ref = np.asarray(meta["scale_mat"], np.float64)
         if not np.allclose(scene.scale_mat, ref, rtol=1e-5, atol=1e-6 * np.abs(ref).max()):

@@ -1,0 +1,343 @@
+"""The object sphere (NeuS's ``scale_mat``) of a scene whose format does not give one.
+
+``x_world = radius * x_norm + center``: the sphere must hold the object, and every camera
+must stay outside it. Three ways, first that applies (`find_sphere`):
+
+1. ``sphere.json`` next to the scene's files: ``{"center": [x, y, z], "radius": r}`` in the
+   scene's world units (the user's override).
+2. With masks, the *visual hull* (`hull_sphere`):
+
+   a. A generous search sphere from the cameras alone: centred on the point closest to all
+      optical axes (`neus_l0.data.cameras.axes_convergence`), radius `SEARCH_FRACTION` x
+      the nearest camera's distance to it (so every camera is outside).
+   b. The masks (block-averaged to at most 128 pixels, `neus_l0.data.transforms.Views`)
+      are padded with their own edge pixels (background stays background beyond the image
+      frame, an object cut by the frame stays cut open) so that views see the whole search
+      sphere, and `neus_l0.bounds.hull.carve_hull` carves it at `RESOLUTION`^3 in the
+      search sphere's normalised frame.
+   c. The tight sphere: the centre of the kept cells' bounding box, and the farthest kept
+      cell corner from it times `MARGIN`, after carving once more (finer cells) in a sphere
+      `REFINE_SLACK` x the first hull's.
+   d. When kept cells touch the search sphere's boundary, the object (or a mask error)
+      reaches beyond it: the search is repeated once around the kept cells with the largest
+      radius the cameras allow; if the hull still touches, a `SceneError` says how much of
+      the boundary is kept and what to do.
+3. Without masks, `neus_l0.photos.sphere.choose_sphere` on the scene's sparse points
+   (nerfstudio's ``ply_file_path``) and cameras; without points, that is the optical axes'
+   convergence point with half the median camera distance as radius (capped so that every
+   camera stays outside).
+
+All in float64 numpy, except the carving (torch, on the CPU).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from neus_l0.bounds.hull import carve_hull
+from neus_l0.data.cameras import axes_convergence
+from neus_l0.errors import SceneError
+from neus_l0.photos.preview import sphere_outline
+from neus_l0.photos.sphere import choose_sphere
+
+#: The search sphere's radius as a fraction of the nearest camera's distance.
+SEARCH_FRACTION = 0.75
+#: The second search's fraction (around the first hull's cells).
+RETRY_FRACTION = 0.95
+#: Cells per axis of the search hull.
+RESOLUTION = 64
+#: Mask dilation of the search hull, in search-mask pixels.
+MARGIN_PX = 1.0
+#: The refining search sphere's radius over the first hull's farthest corner.
+REFINE_SLACK = 1.15
+#: The tight sphere's radius over the hull's farthest corner.
+MARGIN = 1.1
+#: The padding of the search masks, at most this many times their longer side per edge.
+MAX_PAD = 1.5
+#: Every camera stays outside: radii are capped at this fraction of the nearest camera's
+#: distance.
+MAX_CAMERA_FRACTION = 0.95
+#: The user's override file.
+SPHERE_FILE = "sphere.json"
+
+
+@dataclasses.dataclass
+class SphereFit:
+    """The object sphere and how it was found.
+
+    Attributes:
+        center: (3,) world units.
+        radius: world units.
+        method: ``sphere.json``, ``visual hull``, ``SfM points`` or ``cameras``.
+        detail: one line on how (for the user).
+        points: (M, 3) world points that support it, for the preview (hull cell centres,
+            sparse points; empty for ``cameras``).
+        seconds: time it took.
+    """
+
+    center: np.ndarray
+    radius: float
+    method: str
+    detail: str
+    points: np.ndarray
+    seconds: float = 0.0
+
+    def scale_mat(self) -> np.ndarray:
+        """(4, 4) float64 normalised -> world."""
+        S = np.diag([self.radius, self.radius, self.radius, 1.0])
+        S[:3, 3] = self.center
+        return S
+
+    def explain(self) -> str:
+        """One line: the sphere and how it was found."""
+        c = self.center
+        return (f"object sphere: centre ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}), radius "
+                f"{self.radius:.4g} ({self.method}: {self.detail})")
+
+    def to_dict(self) -> dict:
+        return {"center": [float(v) for v in self.center], "radius": float(self.radius),
+                "method": self.method, "detail": self.detail,
+                "seconds": round(self.seconds, 3)}
+
+
+def search_sphere(centres: np.ndarray, axes: np.ndarray,
+                  fraction: float = SEARCH_FRACTION) -> tuple[np.ndarray, float]:
+    """The generous sphere from the cameras alone (step 2a of the module docstring).
+
+    Args:
+        centres: (V, 3) camera centres; axes: (V, 3) optical axes (camera +z), world.
+        fraction: radius over the nearest camera's distance to the centre.
+
+    Returns:
+        centre (3,), radius.
+
+    Raises:
+        ValueError: the optical axes are (nearly) parallel.
+    """
+    c0 = axes_convergence(centres, axes)
+    return c0, fraction * float(np.linalg.norm(centres - c0, axis=-1).min())
+
+
+def _normalised(c2w: np.ndarray, center: np.ndarray, radius: float) -> np.ndarray:
+    """(V, 4, 4) poses in the frame where the sphere (center, radius) is the unit sphere."""
+    out = c2w.copy()
+    out[:, :3, 3] = (c2w[:, :3, 3] - center) / radius
+    return out
+
+
+def _pad(masks: np.ndarray, K: np.ndarray, c2w_n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pad the masks with their edge pixels so that each view sees the unit sphere (at most
+    `MAX_PAD` x the longer side per edge; one padding for all views).
+
+    Args:
+        masks: (V, h, w); K: (V, 3, 3); c2w_n: (V, 4, 4) normalised frame.
+
+    Returns:
+        padded masks (V, h + 2p, w + 2p), their K (principal point shifted by p).
+    """
+    V, h, w = masks.shape
+    need = 0.0
+    for v in range(V):
+        w2c = np.linalg.inv(c2w_n[v])
+        ring = sphere_outline(K[v] @ w2c[:3], np.zeros(3), 1.0)
+        X = w2c[:3, 3]  # the sphere's centre in the camera frame
+        if ring is None or X[2] <= 1.0 or not np.isfinite(ring).all():
+            need = math.inf  # the sphere reaches behind the camera's plane
+            break
+        need = max(need, -ring[:, 0].min(), ring[:, 0].max() - (w - 1), -ring[:, 1].min(),
+                   ring[:, 1].max() - (h - 1))
+    pad = int(min(math.ceil(need + 2.0), MAX_PAD * max(h, w)))
+    pad = max(pad, 0)
+    out = np.stack([cv2.copyMakeBorder(m, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+                    for m in masks])
+    Kp = K.copy()
+    Kp[:, 0, 2] += pad
+    Kp[:, 1, 2] += pad
+    return out, Kp
+
+
+def _carve(masks: np.ndarray, K: np.ndarray, c2w: np.ndarray, center: np.ndarray,
+           radius: float, names: list[str] | None) -> tuple[np.ndarray, float, list[str]]:
+    """Carve the hull in the sphere (center, radius).
+
+    Returns:
+        kept: (N, 3) kept cell centres in the sphere's normalised frame;
+        shell: the fraction of the boundary shell's cells that are kept;
+        warnings: the hull's warning lines.
+    """
+    c2w_n = _normalised(c2w, center, radius)
+    pm, pK = _pad(masks, K, c2w_n)
+    hull = carve_hull(torch.from_numpy(pm).float(), torch.from_numpy(pK).float(),
+                      torch.from_numpy(c2w_n).float(), resolution=RESOLUTION,
+                      margin_px=MARGIN_PX, has_masks=True, names=names)
+    occ = hull.occupancy.cpu().numpy()
+    h = 2.0 / RESOLUTION
+    ax = -1.0 + h * (np.arange(RESOLUTION) + 0.5)
+    grid = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1)  # (R, R, R, 3)
+    r = np.linalg.norm(grid, axis=-1)
+    shell_cells = (r > 1.0 - 2.0 * h) & (r <= 1.0 + h)
+    shell = float(occ[shell_cells].mean()) if shell_cells.any() else 0.0
+    return grid[occ], shell, list(hull.report.warnings)
+
+
+def _tight(kept: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centre of the kept cells' box and the farthest cell corner's distance (normalised)."""
+    h = 2.0 / RESOLUTION
+    lo, hi = kept.min(0) - 0.5 * h, kept.max(0) + 0.5 * h
+    mid = 0.5 * (lo + hi)
+    reach = float(np.linalg.norm(kept - mid, axis=-1).max()) + 0.5 * math.sqrt(3.0) * h
+    return mid, reach
+
+
+def hull_sphere(masks: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray,
+                names: list[str] | None = None, where: str | Path = "scene",
+                log=None) -> SphereFit:
+    """The object sphere from the masks' visual hull (step 2 of the module docstring).
+
+    Args:
+        masks: (V, h, w) float32 coverage in [0, 1] (any coverage counts as foreground).
+        intrinsics: (V, 3, 3) K of those masks; c2w: (V, 4, 4) OpenCV camera-to-world in
+            world units.
+        names: view names for the hull's warnings.
+        where: the scene's file, for messages.
+        log: callable taking one line (the hull's warnings), or None.
+
+    Raises:
+        SceneError: the axes are parallel, the hull is empty, or it still touches the
+            search sphere after the second search.
+    """
+    t0 = time.perf_counter()
+    centres, axes = c2w[:, :3, 3], c2w[:, :3, 2]
+    try:
+        center, radius = search_sphere(centres, axes)
+    except ValueError:
+        raise SceneError(f"{where}: the cameras' optical axes are (nearly) parallel: no "
+                         f"object to centre on; give the sphere in {SPHERE_FILE}") from None
+    tries = 0
+    while True:
+        tries += 1
+        kept, shell, warnings = _carve(masks, intrinsics, c2w, center, radius, names)
+        if len(kept) == 0:
+            raise SceneError(f"{where}: the masks' visual hull is empty: masks and cameras "
+                             f"disagree (wrong camera convention or masks of other views?)")
+        if shell == 0.0:
+            break
+        mid, _ = _tight(kept)
+        new_center = center + radius * mid
+        nearest = float(np.linalg.norm(centres - new_center, axis=-1).min())
+        if tries == 2 or RETRY_FRACTION * nearest <= radius * 1.05:
+            raise SceneError(
+                f"{where}: the masks' visual hull reaches the search sphere (centre "
+                f"({center[0]:.4g}, {center[1]:.4g}, {center[2]:.4g}), radius {radius:.4g}, "
+                f"the largest the cameras allow): {shell:.1%} of its boundary cells are kept, "
+                f"so the object is cut there; check that every mask covers the object only "
+                f"and that the object is whole in most views, or give the sphere in "
+                f"{SPHERE_FILE} ({{\"center\": [x, y, z], \"radius\": r}}, world units)")
+        center, radius = new_center, RETRY_FRACTION * nearest
+    # refine: carve again in a sphere just around the first hull (finer cells)
+    mid, reach = _tight(kept)
+    fine_center, fine_radius = center + radius * mid, REFINE_SLACK * radius * reach
+    fine, fine_shell, fine_warnings = _carve(masks, intrinsics, c2w, fine_center, fine_radius,
+                                             names)
+    if len(fine) and fine_shell == 0.0:
+        center, radius, kept, warnings = fine_center, fine_radius, fine, fine_warnings
+    if log is not None:
+        for w in warnings:
+            log(f"visual hull: {w}")
+    mid, reach = _tight(kept)
+    center_w = center + radius * mid
+    radius_w = MARGIN * radius * reach
+    nearest = float(np.linalg.norm(centres - center_w, axis=-1).min())
+    refined = "refined in" if radius == fine_radius else "in"
+    detail = (f"{len(masks)} masks, {RESOLUTION}^3 cells {refined} a sphere of radius "
+              f"{radius:.4g}{', second search' if tries > 1 else ''}; x{MARGIN:g} margin")
+    if radius_w > MAX_CAMERA_FRACTION * nearest:
+        radius_w = MAX_CAMERA_FRACTION * nearest
+        detail += "; capped to keep every camera outside"
+    return SphereFit(center=center_w, radius=radius_w, method="visual hull", detail=detail,
+                     points=center + radius * kept, seconds=time.perf_counter() - t0)
+
+
+def camera_sphere(c2w: np.ndarray, points: np.ndarray | None = None,
+                  where: str | Path = "scene") -> SphereFit:
+    """The object sphere without masks (step 3 of the module docstring).
+
+    Args:
+        c2w: (V, 4, 4) OpenCV camera-to-world, world units.
+        points: (M, 3) sparse points, world units, or None.
+
+    Raises:
+        SceneError: the optical axes are (nearly) parallel.
+    """
+    t0 = time.perf_counter()
+    pts = np.zeros((0, 3)) if points is None else np.asarray(points, np.float64).reshape(-1, 3)
+    try:
+        ch = choose_sphere(pts, np.full(len(pts), 3), c2w[:, :3, 3], c2w[:, :3, 2])
+    except ValueError:
+        raise SceneError(f"{where}: the cameras' optical axes are (nearly) parallel: no "
+                         f"object to centre on; give the sphere in {SPHERE_FILE}") from None
+    if ch.n_points >= 4:
+        method = "SfM points"
+        detail = (f"{ch.n_points} of {ch.n_total} sparse points near the cameras' look-at "
+                  f"point")
+        support = pts
+    else:
+        method = "cameras"
+        detail = ("no masks and no sparse points: the cameras' look-at point, half the "
+                  "median camera distance (check the preview)")
+        support = np.zeros((0, 3))
+    if ch.capped:
+        detail += "; capped to keep every camera outside"
+    return SphereFit(center=ch.center, radius=ch.radius, method=method, detail=detail,
+                     points=support, seconds=time.perf_counter() - t0)
+
+
+def user_sphere(path: Path, c2w: np.ndarray) -> SphereFit:
+    """The sphere of a ``sphere.json`` file (``center``, ``radius``, world units).
+
+    Raises:
+        SceneError: unreadable, malformed, or a camera inside the sphere.
+    """
+    try:
+        data = json.loads(Path(path).read_text(encoding="utf-8"))
+        center = np.asarray(data["center"], dtype=np.float64).reshape(3)
+        radius = float(data["radius"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SceneError(f"{path}: expected {{\"center\": [x, y, z], \"radius\": r}} "
+                         f"({type(exc).__name__}: {exc})") from None
+    if not (np.isfinite(center).all() and math.isfinite(radius) and radius > 0):
+        raise SceneError(f"{path}: centre must be finite and radius > 0")
+    nearest = float(np.linalg.norm(c2w[:, :3, 3] - center, axis=-1).min())
+    if nearest <= radius:
+        raise SceneError(f"{path}: a camera lies inside the sphere (nearest camera at "
+                         f"{nearest:.4g} from the centre, radius {radius:.4g})")
+    return SphereFit(center=center, radius=radius, method=SPHERE_FILE, detail=str(path),
+                     points=np.zeros((0, 3)))
+
+
+def find_sphere(root: Path, c2w: np.ndarray, masks: np.ndarray | None = None,
+                intrinsics: np.ndarray | None = None, points: np.ndarray | None = None,
+                names: list[str] | None = None, where: str | Path = "scene",
+                log=None) -> SphereFit:
+    """The object sphere, the first way that applies (module docstring).
+
+    Args:
+        root: the scene folder (where ``sphere.json`` may be).
+        c2w: (V, 4, 4) OpenCV camera-to-world, world units.
+        masks: (V, h, w) search masks, or None; intrinsics: (V, 3, 3) their K.
+        points: (M, 3) sparse points, world units, or None.
+        names, where, log: as `hull_sphere`.
+    """
+    if (Path(root) / SPHERE_FILE).is_file():
+        return user_sphere(Path(root) / SPHERE_FILE, c2w)
+    if masks is not None:
+        return hull_sphere(masks, intrinsics, c2w, names, where, log)
+    return camera_sphere(c2w, points, where)
