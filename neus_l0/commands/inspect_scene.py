@@ -56,6 +56,12 @@ def format_summary(info: dict) -> str:
         f"cameras      distance {dist['mean']:.3f} mean ({dist['min']:.3f} .. {dist['max']:.3f}) "
         f"sphere radii; focal {info['focal']['min']:.1f} .. {info['focal']['max']:.1f} px",
     ]
+    if info.get("pairing"):
+        idx = info.get("view_indices") or []
+        span = f"views {idx[0]} .. {idx[-1]}" if idx else "no views"
+        unused = info.get("unused_cameras") or []
+        lines.append(f"pairing      {info['pairing']} ({span}"
+                     + (f"; cameras without an image: {unused}" if unused else "") + ")")
     if "sphere_method" in info:
         lines.append(f"sphere from  {info['sphere_method']}: {info['sphere_detail']}")
     if info.get("preview"):

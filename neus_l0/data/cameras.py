@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from neus_l0.data.views import indexed_files
 from neus_l0.errors import NeusL0Error
 
 #: Camera files of a NeuS-format folder, in order of preference (IDR's legacy name last).
@@ -361,31 +362,26 @@ def read_world_mats(scene_dir: str | Path) -> np.ndarray:
     return out
 
 
-def read_masks(scene_dir: str | Path, n_views: int | None = None) -> list[np.ndarray]:
-    """Foreground masks `mask/*.png` in sorted name order (> 127 = foreground).
-
-    Args:
-        scene_dir: scene folder.
-        n_views: expected number of masks (checked when given).
+def read_masks(scene_dir: str | Path) -> dict[int, np.ndarray]:
+    """Foreground masks ``mask/*`` by view index (`neus_l0.data.views`; > 127 = foreground).
 
     Returns:
-        n_views (H, W) bool arrays.
+        {view index: (H, W) bool}, in index order.
 
     Raises:
-        NeusL0Error: no mask folder/files, unreadable image, or a count mismatch.
+        NeusL0Error: no mask folder/files, a file without a view number, two files of one
+            view, or an unreadable image.
     """
     folder = Path(scene_dir) / "mask"
-    files = sorted(folder.glob("*.png"))
+    files = indexed_files(folder) if folder.is_dir() else {}
     if not files:
-        raise NeusL0Error(f"{folder}: no mask/*.png files")
-    if n_views is not None and len(files) != n_views:
-        raise NeusL0Error(f"{folder}: {len(files)} masks for {n_views} cameras")
-    masks = []
-    for f in files:
+        raise NeusL0Error(f"{folder}: no mask files")
+    masks = {}
+    for i, f in files.items():
         img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise NeusL0Error(f"{f}: cannot read image")
         if img.ndim == 3:
             img = img[..., :3].max(axis=-1)
-        masks.append(img > 127)
+        masks[i] = img > 127
     return masks

@@ -33,9 +33,14 @@ import numpy as np
 import torch
 
 from neus_l0.data.cameras import decompose_projection
+from neus_l0.data.views import (
+    PAIRING_RULE,
+    indexed_files,
+    pair_views,
+    warn_unused,
+)
 from neus_l0.errors import SceneError
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
 
 
@@ -119,16 +124,13 @@ class Scene:
             intrinsics=self.intrinsics.to(device), c2w=self.c2w.to(device))
 
 
-def _list_images(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir()
-                  if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
-
-
-def find_files(root: str | Path) -> tuple[list[Path], list[Path] | None, Path]:
-    """Locate a scene's images, masks (None without ``mask/``) and camera file.
+def find_files(root: str | Path) -> tuple[dict[int, Path], dict[int, Path] | None, Path]:
+    """Locate a scene's images and masks by view index (None without ``mask/``) and its
+    camera file (`neus_l0.data.views`).
 
     Raises:
-        SceneError: missing folder, no images, image/mask count mismatch, no camera file.
+        SceneError: missing folder, no images, a file without a view number, two files of
+            one view, no camera file.
     """
     root = Path(root)
     if not root.is_dir():
@@ -136,7 +138,7 @@ def find_files(root: str | Path) -> tuple[list[Path], list[Path] | None, Path]:
     image_dir = root / "image"
     if not image_dir.is_dir():
         raise SceneError(f"{image_dir}: missing 'image/' folder")
-    images = _list_images(image_dir)
+    images = indexed_files(image_dir)
     if not images:
         raise SceneError(f"{image_dir}: no images (.png/.jpg) found")
     masks = None
@@ -144,14 +146,28 @@ def find_files(root: str | Path) -> tuple[list[Path], list[Path] | None, Path]:
     if mask_dir.exists():
         if not mask_dir.is_dir():
             raise SceneError(f"{mask_dir}: not a folder")
-        masks = _list_images(mask_dir)
-        if len(masks) != len(images):
-            raise SceneError(f"{mask_dir}: {len(masks)} masks for {len(images)} images "
-                             f"in {image_dir}")
+        masks = indexed_files(mask_dir)
+        if not masks:
+            raise SceneError(f"{mask_dir}: no masks (.png/.jpg) found")
     for name in CAMERA_FILES:
         if (root / name).is_file():
             return images, masks, root / name
     raise SceneError(f"{root}: no camera file ({' or '.join(CAMERA_FILES)})")
+
+
+def camera_indices(path: Path) -> list[int]:
+    """The indices i of the ``world_mat_i`` a camera file holds.
+
+    Raises:
+        SceneError: an unreadable file.
+    """
+    try:
+        with np.load(path) as data:
+            keys = list(data.files)
+    except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
+        raise SceneError(f"{path}: unreadable camera file ({exc})") from None
+    return sorted(int(k[len("world_mat_"):]) for k in keys
+                  if k.startswith("world_mat_") and k[len("world_mat_"):].isdigit())
 
 
 def read_image(path: Path, shape: tuple[int, int] | None = None
@@ -191,11 +207,12 @@ def read_image(path: Path, shape: tuple[int, int] | None = None
     return rgb, alpha
 
 
-def _read_cameras(path: Path, n_views: int) -> tuple[np.ndarray, np.ndarray]:
-    """Projection matrices P_i = (world_mat_i @ scale_mat_i)[:3, :4] and scale_mat_0.
+def _read_cameras(path: Path, indices: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """Projection matrices P_i = (world_mat_i @ scale_mat_i)[:3, :4] of the views `indices`,
+    and the first view's scale_mat.
 
     Returns:
-        P: (n_views, 3, 4) float64, normalised frame -> pixels.
+        P: (len(indices), 3, 4) float64, normalised frame -> pixels.
         scale_mat: (4, 4) float64.
     """
     try:
@@ -204,12 +221,12 @@ def _read_cameras(path: Path, n_views: int) -> tuple[np.ndarray, np.ndarray]:
     except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
         raise SceneError(f"{path}: unreadable camera file ({exc})") from None
     Ps, scale_mat0 = [], None
-    for i in range(n_views):
+    for i in indices:
         mats = {}
         for key in (f"world_mat_{i}", f"scale_mat_{i}"):
             if key not in keys:
-                raise SceneError(f"{path}: missing '{key}' ({n_views} images need "
-                                 f"world_mat_0..{n_views - 1} and scale_mat_0..{n_views - 1})")
+                raise SceneError(f"{path}: missing '{key}' (image view {i} needs world_mat_{i} "
+                                 f"and scale_mat_{i}; {PAIRING_RULE})")
             m = np.asarray(data[key], dtype=np.float64)
             if m.shape not in ((4, 4), (3, 4)):
                 raise SceneError(f"{path}: '{key}' has shape {m.shape}, expected (4, 4)")
@@ -227,7 +244,7 @@ def _read_cameras(path: Path, n_views: int) -> tuple[np.ndarray, np.ndarray]:
             raise SceneError(f"{path}: projection matrix of view {i} "
                              f"(world_mat_{i} @ scale_mat_{i}) is singular")
         Ps.append(P)
-        if i == 0:
+        if scale_mat0 is None:
             scale_mat0 = scale
     return np.stack(Ps), scale_mat0
 
@@ -363,9 +380,12 @@ def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
     if int(downscale) != downscale or downscale < 1:
         raise SceneError(f"{root}: downscale must be an integer >= 1, got {downscale}")
     s = int(downscale)
-    image_paths, mask_paths, cam_path = find_files(root)
+    images_by_index, masks_by_index, cam_path = find_files(root)
+    pairing = pair_views(images_by_index, masks_by_index, camera_indices(cam_path), cam_path)
+    warn_unused(pairing, cam_path)
+    image_paths, mask_paths = pairing.images, pairing.masks
     n = len(image_paths)
-    P, scale_mat = _read_cameras(cam_path, n)
+    P, scale_mat = _read_cameras(cam_path, pairing.indices)
 
     first = read_image(image_paths[0], None)
     H, W = first[0].shape[:2]
@@ -400,7 +420,9 @@ def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
         scale_mat=scale_mat,
         image_names=[p.name for p in image_paths],
         info={"format": "neus", "camera_file": cam_path.name, "masks": source,
-              "mask_files": [f"mask/{p.name}" for p in mask_paths or []]},
+              "mask_files": [f"mask/{p.name}" for p in mask_paths or []],
+              "pairing": PAIRING_RULE, "view_indices": pairing.indices,
+              "unused_cameras": pairing.unused_cameras},
     )
 
 
@@ -464,5 +486,8 @@ def scene_summary(scene: Scene) -> dict:
         "axis_miss": {"max": float(miss.max())},
         "focal": {"min": float(fx.min()), "max": float(fx.max())},
         "empty_masks": empty.tolist(),
+        "pairing": info.get("pairing"),
+        "view_indices": info.get("view_indices"),
+        "unused_cameras": info.get("unused_cameras", []),
         "warnings": warnings,
     }

@@ -11,10 +11,19 @@ vertices are; vertices no kept face uses are dropped.
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import numpy as np
 
-from neus_l0.data.cameras import depth_projection, pixel_indices, read_masks, read_world_mats
+from neus_l0.data.cameras import (
+    camera_file,
+    depth_projection,
+    pixel_indices,
+    read_masks,
+    read_world_mats,
+)
+from neus_l0.data.views import indexed_files
+from neus_l0.errors import NeusL0Error
 
 #: Dilation radius used for DTU's 1600 x 1200 masks (pixels).
 DTU_DILATE = 24
@@ -98,8 +107,24 @@ def cull_mesh(vertices: np.ndarray, faces: np.ndarray, scene_dir: str | os.PathL
     Raises:
         NeusL0Error: missing/malformed cameras or masks.
     """
-    projections = read_world_mats(scene_dir)
-    masks = read_masks(scene_dir, len(projections))
+    all_projections = read_world_mats(scene_dir)
+    by_view = read_masks(scene_dir)  # paired with the cameras by view number
+    beyond = [i for i in by_view if i >= len(all_projections)]
+    if beyond:
+        raise NeusL0Error(f"{Path(scene_dir) / 'mask'}: masks of views {beyond} have no "
+                          f"world_mat in {camera_file(scene_dir).name}")
+    # every view with an image needs its mask (a camera with neither is a deleted view);
+    # without image/, every camera does
+    image_dir = Path(scene_dir) / "image"
+    seen = ({i: f"image/{p.name}" for i, p in indexed_files(image_dir).items()}
+            if image_dir.is_dir() else
+            {i: f"world_mat_{i}" for i in range(len(all_projections))})
+    no_mask = [name for i, name in seen.items() if i < len(all_projections) and i not in by_view]
+    if no_mask:
+        raise NeusL0Error(f"{Path(scene_dir) / 'mask'}: no mask for {no_mask[0]}"
+                          f"{f' and {len(no_mask) - 1} more' if len(no_mask) > 1 else ''}")
+    projections = all_projections[list(by_view)]
+    masks = list(by_view.values())
     radius = default_dilation(masks[0].shape[1]) if dilate is None else int(dilate)
     masks = [dilate_mask(m, radius) for m in masks]
     keep = mask_keep_vertices(vertices, projections, masks)
