@@ -182,3 +182,11 @@ def test_every_name_is_imported_from_the_module_that_defines_it():
                             and f"{node.module}.{a.name}" not in MODULES):
                         wrong.append(f"{path.relative_to(ROOT)}: {node.module}.{a.name}")
     assert not wrong, wrong
+
+
+def test_the_current_benchmarks_page_stays_a_page():
+    """docs/BENCHMARKS.md holds the current numbers (at most 500 lines); the dated history
+    lives in docs/benchmarks/."""
+    lines = (ROOT / "docs" / "BENCHMARKS.md").read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= 500, len(lines)
+    assert (ROOT / "docs" / "benchmarks" / "README.md").is_file()
