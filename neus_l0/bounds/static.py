@@ -7,13 +7,28 @@ not one of them.
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
+from neus_l0.bounds.grid import cell_centres
 from neus_l0.bounds.hull import VisualHull, hull_for_run
 from neus_l0.bounds.points import PointBound
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
+from neus_l0.errors import SceneError
+
+#: The share of the unit sphere's outer shell a visual hull may fill before the object counts
+#: as cut by the sphere. Measured with the default 128^3 hull: the demo scene 1.8 %, DTU scan
+#: 65 3.3 %, an 8-view 64x48 demo 12.7 %; the demo with its sphere's radius x0.8 (object cut)
+#: 34 %, x0.5 55 % (docs/BENCHMARKS.md). A conservative hull reaches the shell even when the
+#: object fits, so one kept cell proves nothing.
+CUT_SHELL = 0.25
+#: Fewer carving views than this give hulls too loose to judge the fit by...
+CUT_MIN_VIEWS = 6
+#: ...and so does a mask margin wider than this share of the image's smaller side (a 2 px
+#: margin on a 48-pixel image widens every cone by 4 %).
+CUT_MAX_MARGIN = 0.03
 
 
 def static_bounds(scene: Scene, cfg: Config,
@@ -36,6 +51,37 @@ def static_bounds(scene: Scene, cfg: Config,
         return (box,)
     run_dir.mkdir(parents=True, exist_ok=True)
     hull = hull_for_run(scene, run_dir / "hull.pt", h.resolution, h.margin_px)
+    check_fit(hull, scene)
     for line in (hull.report.warnings if hull.report is not None else []):
         print(f"neus-l0: visual hull: {line}", file=sys.stderr, flush=True)
     return (hull,)
+
+
+def shell_fraction(hull: VisualHull) -> float:
+    """The share of the unit sphere's outermost shell of cells (centres within 1.5 cells
+    inside the sphere, or up to half a cell diagonal outside) that `hull` keeps."""
+    R = hull.resolution
+    cell = 2.0 / R
+    r = cell_centres(R, hull.device).norm(dim=-1)
+    shell = (r > 1.0 - 1.5 * cell) & (r <= 1.0 + math.sqrt(3.0) * cell / 2.0)
+    return float((hull.occupancy & shell).sum()) / max(int(shell.sum()), 1)
+
+
+def check_fit(hull: VisualHull, scene: Scene) -> None:
+    """Refuse a scene whose object the unit sphere cuts (`CUT_SHELL`), before training.
+
+    Raises:
+        SceneError: naming the scene, how much of the shell the hull fills, and the fix.
+    """
+    carving = sum(s == "ok" for s in hull.report.status) if hull.report else 0
+    if carving < CUT_MIN_VIEWS or hull.margin_px > CUT_MAX_MARGIN * min(scene.height,
+                                                                        scene.width):
+        return
+    frac = shell_fraction(hull)
+    if frac > CUT_SHELL:
+        raise SceneError(
+            f"{scene.root}: the object does not fit its unit sphere: the masks' visual hull "
+            f"fills {frac:.0%} of the sphere's outer shell (an object inside fills a few %), so "
+            f"training would clip the mesh; enlarge the sphere (the scale of every scale_mat_i), "
+            "e.g. by 1.5x, and check with `neus-l0 inspect --hull`, or set "
+            "render.hull.enabled=false to train anyway")

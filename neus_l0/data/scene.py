@@ -190,6 +190,9 @@ def read_image(path: Path, shape: tuple[int, int] | None = None
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise SceneError(f"{path}: unreadable image")
+    cut = truncated(path)
+    if cut:
+        raise SceneError(f"{path}: {cut} (a partial copy or download?)")
     if shape is not None and img.shape[:2] != shape:
         raise SceneError(f"{path}: size {img.shape[1]}x{img.shape[0]} differs from "
                          f"{shape[1]}x{shape[0]} of the first image")
@@ -207,6 +210,26 @@ def read_image(path: Path, shape: tuple[int, int] | None = None
     return rgb, alpha
 
 
+def truncated(path: Path) -> str | None:
+    """Why an image file is cut short, or None: OpenCV decodes a truncated PNG or JPEG
+    without an error, filling the missing rows, so the file's end is checked."""
+    suffix = Path(path).suffix.lower()
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        size = f.tell()
+        f.seek(max(0, size - 64))
+        tail = f.read()
+    if suffix == ".png" and b"IEND" not in tail[-12:]:
+        return "truncated PNG (no IEND chunk at its end)"
+    if suffix in (".jpg", ".jpeg") and b"\xff\xd9" not in tail.rstrip(b"\x00 \r\n")[-2:]:
+        return "truncated JPEG (no end-of-image marker)"
+    return None
+
+
+#: How far two views' scale_mat may differ (relative to the largest entry) and still be one.
+SCALE_MAT_RTOL = 1e-6
+
+
 def _read_cameras(path: Path, indices: list[int]) -> tuple[np.ndarray, np.ndarray]:
     """Projection matrices P_i = (world_mat_i @ scale_mat_i)[:3, :4] of the views `indices`,
     and the first view's scale_mat.
@@ -220,14 +243,18 @@ def _read_cameras(path: Path, indices: list[int]) -> tuple[np.ndarray, np.ndarra
         keys = set(data.files)
     except Exception as exc:  # noqa: BLE001 - any parse failure is the user's file
         raise SceneError(f"{path}: unreadable camera file ({exc})") from None
-    Ps, scale_mat0 = [], None
+    Ps, scale_mat0, differ = [], None, []
     for i in indices:
         mats = {}
         for key in (f"world_mat_{i}", f"scale_mat_{i}"):
             if key not in keys:
                 raise SceneError(f"{path}: missing '{key}' (image view {i} needs world_mat_{i} "
                                  f"and scale_mat_{i}; {PAIRING_RULE})")
-            m = np.asarray(data[key], dtype=np.float64)
+            try:
+                m = np.asarray(data[key], dtype=np.float64)
+            except (ValueError, TypeError) as exc:  # object arrays, strings, ragged lists
+                raise SceneError(f"{path}: '{key}' is not a numeric matrix "
+                                 f"({str(exc).splitlines()[0]})") from None
             if m.shape not in ((4, 4), (3, 4)):
                 raise SceneError(f"{path}: '{key}' has shape {m.shape}, expected (4, 4)")
             if not np.all(np.isfinite(m)):
@@ -245,7 +272,14 @@ def _read_cameras(path: Path, indices: list[int]) -> tuple[np.ndarray, np.ndarra
                              f"(world_mat_{i} @ scale_mat_{i}) is singular")
         Ps.append(P)
         if scale_mat0 is None:
-            scale_mat0 = scale
+            scale_mat0, first = scale, i
+        elif not np.allclose(scale, scale_mat0, rtol=0,
+                             atol=SCALE_MAT_RTOL * np.abs(scale_mat0).max()):
+            differ.append(i)
+    if differ:
+        shown = ", ".join(f"scale_mat_{i}" for i in differ[:5])
+        raise SceneError(f"{path}: {shown}{' ...' if len(differ) > 5 else ''} differ from "
+                         f"scale_mat_{first}: NeuS normalises every view with one sphere")
     return np.stack(Ps), scale_mat0
 
 

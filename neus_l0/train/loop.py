@@ -58,6 +58,12 @@ from neus_l0.train.callbacks import (
     Validation,
 )
 from neus_l0.train.compile import compiled_step
+from neus_l0.train.preflight import (
+    check_same_scene,
+    check_writable,
+    checkpoint_bytes,
+    scene_fingerprint,
+)
 from neus_l0.train.signals import StopOnSignal
 from neus_l0.train.state import Clock, RunState
 from neus_l0.train.step import (
@@ -130,12 +136,18 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
         raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
     ckpt, state = found if found is not None else (None, None)
     _check_scene(scene, cfg)
+    if resume:
+        check_same_scene(run_dir, scene)
     scene = scene.to(device)
     model = make_model(cfg, device)
     run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
                    optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
                    generator=torch.Generator(device=device),
                    occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
+    t = cfg.train
+    saves = (t.iters // t.save_every if t.save_every else 0) + 1
+    kept = min(t.keep_checkpoints, saves) if t.keep_checkpoints else saves
+    check_writable(run_dir, (kept + 1) * checkpoint_bytes(model, run.optimizer))
     run.generator.manual_seed(cfg.train.seed)
     run.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
     run.setup.bounds = static_bounds(scene, cfg, run_dir)
@@ -158,6 +170,7 @@ def _write_run_files(run: RunState) -> None:
     atomic_write_json(run.run_dir / "run.json", {
         "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
         "n_views": scene.n_views, "height": scene.height, "width": scene.width,
+        "scene_fingerprint": scene_fingerprint(scene),
     })
     truncate_metrics(run.run_dir, run.iteration)
 
