@@ -28,6 +28,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--resume", action="store_true",
                    help="continue from the newest checkpoint in RUN (its config.yaml is the "
                         "base config; overrides still apply)")
+    p.add_argument("--change-config", action="store_true",
+                   help="with --resume: allow overrides that change what is learnt (train.lr, "
+                        "the sampler, the losses, ...); they are recorded in RUN/resumes.jsonl, "
+                        "config.yaml stays the original")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     accept_overrides(p)
     return p
@@ -42,9 +46,10 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.train.loop import train
 
     run_dir = check_output_dir(args.out, "--out")
-    conf = run_dir / "config.yaml" if args.resume and (run_dir / "config.yaml").is_file() \
-        else args.conf
-    cfg = load_config(conf, args.overrides)
+    if args.resume and (run_dir / "config.yaml").is_file():
+        cfg = _resumed_config(run_dir, args.overrides, args.change_config)
+    else:
+        cfg = load_config(args.conf, args.overrides)
     device = pick_device(args.device)
     scene = open_scene(args.data, downscale=cfg.data.downscale, device=device)
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
@@ -60,3 +65,27 @@ def run(args: argparse.Namespace) -> int:
     print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/, "
           f"TensorBoard events: tensorboard --logdir {run_dir})")
     return 0
+
+
+def _resumed_config(run_dir, overrides: list[str], change: bool):
+    """The resumed run's config: ``config.yaml``, the overrides earlier resumes recorded, then
+    these `overrides` (training records what they change: `neus_l0.run.resumes`).
+
+    Raises:
+        ConfigError: overrides that change what is learnt without ``--change-config``.
+    """
+    from neus_l0.config.load import load_config
+    from neus_l0.errors import ConfigError
+    from neus_l0.run.resumes import changed_keys, guarded_keys, recorded_overrides
+
+    base = run_dir / "config.yaml"
+    prior = recorded_overrides(run_dir)
+    before = load_config(base, prior)
+    cfg = load_config(base, prior + list(overrides))
+    changed = changed_keys(before, cfg)
+    guarded = guarded_keys(changed)
+    if guarded and not change:
+        raise ConfigError(f"{run_dir}: resuming with {', '.join(guarded)} changed would train "
+                          "a different run; add --change-config to do it on purpose (recorded "
+                          "in resumes.jsonl; config.yaml keeps the original)")
+    return cfg

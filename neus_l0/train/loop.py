@@ -29,7 +29,7 @@ from torch import Tensor
 from neus_l0.atomic import atomic_write_json, atomic_write_text, remove_orphans
 from neus_l0.bounds.pixel_pool import reachable_pixels
 from neus_l0.bounds.static import static_bounds
-from neus_l0.config.load import dump_config
+from neus_l0.config.load import dump_config, load_config
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
@@ -45,6 +45,13 @@ from neus_l0.run.checkpoints import (
 from neus_l0.run.lock import RunLock
 from neus_l0.run.metrics import last_log_line
 from neus_l0.run.metrics import truncate as truncate_metrics
+from neus_l0.run.resumes import (
+    ResumeRecord,
+    as_overrides,
+    changed_keys,
+    record_resume,
+    recorded_overrides,
+)
 from neus_l0.sampling.upsample import build_sampler
 from neus_l0.train.callbacks import (
     Checkpoints,
@@ -163,9 +170,19 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
 
 
 def _write_run_files(run: RunState) -> None:
-    """``config.yaml`` and ``run.json``; the metrics cut back to the resumed iteration."""
+    """``config.yaml`` (a resume keeps the original and records what it changes in
+    ``resumes.jsonl``: `neus_l0.run.resumes`) and ``run.json``; the metrics cut back to the
+    resumed iteration."""
     run.run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(run.run_dir / "config.yaml", dump_config(run.cfg))
+    original = run.run_dir / "config.yaml"
+    if run.iteration > 0 and original.is_file():
+        before = load_config(original, recorded_overrides(run.run_dir))
+        changed = changed_keys(before, run.cfg)
+        if changed:
+            record_resume(run.run_dir, ResumeRecord(run.iteration,
+                                                    as_overrides(run.cfg, changed), changed))
+    else:
+        atomic_write_text(original, dump_config(run.cfg))
     scene = run.scene
     atomic_write_json(run.run_dir / "run.json", {
         "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
