@@ -1,6 +1,9 @@
 """`neus-l0 eval`: score a mesh by Chamfer distance (DTU protocol or a synthetic scene).
 
-The protocol and the JSON it writes are documented in docs/EVALUATION.md.
+The protocol and the JSON it writes are documented in docs/EVALUATION.md. Every flag is
+checked before any work (`ScoreSpec.check`); a --density whose sampling would not fit in
+the memory available is refused before sampling, naming the smallest density that fits;
+the JSON is strict (no NaN or Infinity: a missing number is null).
 """
 
 from __future__ import annotations
@@ -27,34 +30,42 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--cull", type=Path, metavar="SCENE",
                    help="first remove mesh parts outside the dilated masks of this scene")
     p.add_argument("--cull-dilate", type=int, default=None, metavar="PX",
-                   help="mask dilation radius in pixels (default: round(24 * width / 1600))")
+                   help="mask dilation radius in pixels, >= 0 (default: round(24 * width / "
+                        "1600))")
     p.add_argument("--error-maps", type=Path, metavar="DIR",
                    help="write accuracy.ply and completeness.ply coloured by distance")
     p.add_argument("--vmax", type=float, default=None,
-                   help="top of the error-map colour scale (default: --max-dist)")
-    p.add_argument("--cmap", default="jet", help="matplotlib colormap of the error maps")
+                   help="top of the error-map colour scale, > 0 (default: --max-dist)")
+    p.add_argument("--cmap", default="jet",
+                   help="matplotlib colormap of the error maps (checked before scoring)")
     p.add_argument("--json", type=Path, default=None, metavar="PATH",
                    help="where to write the JSON (default: MESH.eval.json next to the mesh)")
     p.add_argument("--density", type=float, default=0.2,
-                   help="sampling density and thinning radius (world units; DTU: 0.2)")
+                   help="sampling density and thinning radius (world units, > 0; DTU: 0.2); "
+                        "refused where the sampling (about mesh area / density^2 points) "
+                        "would not fit in memory")
     p.add_argument("--max-dist", type=float, default=20.0,
-                   help="distances >= this are left out of both means (DTU: 20)")
+                   help="distances >= this are left out of both means (> 0; DTU: 20)")
     p.add_argument("--margin-low", type=float, default=60.0,
-                   help="box margin below the GT box (DTU: 60)")
+                   help="box margin below the GT box (>= 0; DTU: 60)")
     p.add_argument("--margin-high", type=float, default=120.0,
-                   help="box margin above the GT box (DTU: 120)")
+                   help="box margin above the GT box (>= 0; DTU: 120)")
     p.add_argument("--depth-tol", type=float, default=2.0,
                    help="synthetic: how far behind the true surface a point still counts as "
-                        "observed (world units)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the thinning order")
-    p.add_argument("--workers", type=int, default=-1, help="kd-tree threads (-1: all cores)")
+                        "observed (world units, >= 0)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the thinning order (>= 0)")
+    p.add_argument("--workers", type=int, default=-1,
+                   help="kd-tree threads (-1: all cores, else >= 1)")
+    p.add_argument("--no-progress", action="store_true",
+                   help="hide the progress bars of long samplings")
     return p
 
 
 def run(args: argparse.Namespace) -> int:
-    from neus_l0.atomic import atomic_write_json
+    from neus_l0.atomic import atomic_write_text
     from neus_l0.commands._paths import check_output_dir, check_output_file
     from neus_l0.evaluation.score import ScoreSpec, score_mesh
+    from neus_l0.mesh.memory import available_memory
 
     out = args.json if args.json is not None else args.mesh.with_name(args.mesh.name + ".eval.json")
     check_output_file(out, "--json")
@@ -66,8 +77,10 @@ def run(args: argparse.Namespace) -> int:
         cmap=args.cmap, density=args.density, max_dist=args.max_dist,
         margin_low=args.margin_low, margin_high=args.margin_high, depth_tol=args.depth_tol,
         seed=args.seed, workers=args.workers)
-    report = score_mesh(args.mesh, spec)
-    atomic_write_json(out, report)
+    report = score_mesh(args.mesh, spec, memory=available_memory(),
+                        progress=not args.no_progress)
+    # strict JSON: score_mesh turns NaN / infinity into null, and allow_nan=False holds it
+    atomic_write_text(out, json.dumps(report, indent=2, sort_keys=True, allow_nan=False) + "\n")
     print(f"eval: wrote {out}", file=sys.stderr, flush=True)
 
     def fmt(x: float | None) -> str:
@@ -77,5 +90,5 @@ def run(args: argparse.Namespace) -> int:
     print(f"accuracy {fmt(report['accuracy'])}  completeness {fmt(report['completeness'])}  "
           f"overall {fmt(report['overall'])}  ({counts['pred_kept']} predicted points kept, "
           f"{counts['gt_used']} GT points)")
-    print(json.dumps(report, sort_keys=True))
+    print(json.dumps(report, sort_keys=True, allow_nan=False))
     return 0

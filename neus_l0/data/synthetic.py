@@ -9,12 +9,22 @@ does) -> camera cap (elevation 20-70 degrees, distance 3.9-4.4 sphere radii, lik
 ground-truth points (dense surface samples, exact, kept where some camera sees them).
 
 Folder layout: see "A synthetic scene folder" in ``docs/ARCHITECTURE.md``.
+
+The whole scene is written into a hidden temporary folder next to the output
+(``.NAME.XXXXXXXX.tmp``) and swapped in at the end (the old folder is renamed away, the new
+one renamed in, then the old one removed), so an interrupted run leaves the previous scene
+whole and a re-run with fewer views leaves no stale images. A folder that holds anything
+other than a synthetic scene's files is never replaced. An exception (Ctrl-C included)
+removes the temporary folder; a killed process leaves it behind.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
+import secrets
+import shutil
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -56,6 +66,17 @@ DISTANCE_RANGE = (3.9, 4.4)
 GT_VOXEL = {"demo": 1.5, "pits-and-thin": 0.8}
 #: Rays per render batch (bounded memory; several views share one batch).
 RAYS_PER_BATCH = 2_500_000
+#: Peak bytes per ray of a render batch (measured 180-225 for `demo` at 400x300, spp 2-4).
+BYTES_PER_RAY = 256
+#: Memory of a scene besides the render batch and the depth maps (ground truth, torch).
+FIXED_BYTES = 256 * 2**20
+#: What a synthetic scene folder holds; a folder holding anything else is never replaced.
+SCENE_ENTRIES = frozenset({"image", "mask", "cameras_sphere.npz", "gt_depth.npz",
+                           "gt_mesh.ply", "gt_points.ply", "features.json", "scene.json"})
+#: Seeds are drawn from [0, MAX_SEED] (numpy and torch generators both take them).
+MAX_SEED = 2**32 - 1
+#: A mesh thinner than this fraction of its size is flat (no inside to reconstruct).
+FLAT_RATIO = 1e-6
 
 
 def _marching_cubes_sdf(sdf, lo: np.ndarray, hi: np.ndarray, voxel: float):
@@ -92,19 +113,52 @@ def _exact_surface_points(sdf, pts: np.ndarray, iters: int) -> np.ndarray:
 
 
 def _load_mesh(path: Path):
-    """Load a mesh file (OBJ/PLY/GLB/...) as one trimesh.Trimesh, y-up turned to z-up."""
+    """Load a mesh file (OBJ/PLY/GLB/...) as one trimesh.Trimesh, y-up turned to z-up.
+
+    Raises:
+        NeusL0Error: an unreadable file, or a mesh no scene can be made of (no faces,
+            non-finite vertices, faces naming missing vertices, `_check_solid`).
+    """
     import trimesh
 
     try:
-        mesh = trimesh.load(path, force="mesh", process=True)
+        mesh = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # noqa: BLE001 - any loader failure is the user's file
-        raise NeusL0Error(f"{path}: cannot read mesh ({exc})") from None
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise NeusL0Error(f"{path}: cannot read mesh ({msg})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise NeusL0Error(f"{path}: no triangles found")
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    bad = int((~np.isfinite(v).all(1)).sum())
+    if bad:
+        raise NeusL0Error(f"{path}: {bad} of {len(v)} vertices have NaN or infinite "
+                          "coordinates")
+    if f.min() < 0 or f.max() >= len(v):
+        raise NeusL0Error(f"{path}: faces refer to vertices that do not exist (index "
+                          f"{int(f.max() if f.max() >= len(v) else f.min())}, {len(v)} "
+                          "vertices)")
+    mesh = trimesh.Trimesh(v, f, process=True)
+    _check_solid(path, mesh)
     # scanned models (the Stanford bunny, glTF) are y-up; this package's worlds are z-up
     rot = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
     mesh.apply_transform(rot)
     return mesh
+
+
+def _check_solid(path: Path, mesh) -> None:
+    """Refuse a mesh with no extent, no area or no thickness (one line naming the file)."""
+    v = np.asarray(mesh.vertices)
+    size = float(np.ptp(v, axis=0).max())
+    if size == 0.0:
+        raise NeusL0Error(f"{path}: all vertices are the same point (the mesh has no size)")
+    if not mesh.area > 0.0:
+        raise NeusL0Error(f"{path}: every triangle is degenerate (zero surface area)")
+    thickness = np.linalg.svd(v - v.mean(0), compute_uv=False)
+    if thickness[2] <= FLAT_RATIO * thickness[0]:
+        raise NeusL0Error(f"{path}: all {len(v)} vertices lie in one plane ({len(mesh.faces)} "
+                          "triangle(s)): a flat mesh has no inside to reconstruct; give a "
+                          "solid object")
 
 
 def _visible(points: np.ndarray, world_mats: np.ndarray, depths: np.ndarray,
@@ -189,7 +243,8 @@ def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
 
     Args:
         scene: a built-in name (``demo``, ``pits-and-thin``) or a mesh file path.
-        out: output folder (created; files in it are replaced atomically).
+        out: output folder: new, empty, or a synthetic scene, which is replaced whole
+            (written into a temporary folder next to it and swapped in at the end).
         views, width, height: number of cameras and image size.
         seed: seed of the camera jitter and the texture.
         spp: anti-aliasing sub-samples per pixel axis (spp^2 per pixel).
@@ -205,6 +260,10 @@ def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
 
     Returns:
         The output folder.
+
+    Raises:
+        NeusL0Error: out-of-range numbers (`check_scene_args`), an unknown scene, a mesh
+            file no scene can be made of, or an `out` that must not be replaced.
     """
     with _torch_threads(threads):
         return _make_scene(scene, out, views, width, height, seed, spp, gt_voxel,
@@ -261,89 +320,225 @@ def _true_surface(scene: str | Path, gt_voxel: float | None) -> _TrueSurface:
                         None, None, [])
 
 
-def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spacing,
-                azimuth_span, progress) -> Path:
-    import trimesh
-    from tqdm import tqdm
+def check_scene_args(views: int, width: int, height: int, spp: int, seed: int = 0) -> None:
+    """Refuse out-of-range numbers of `neus-l0 synth` (one line naming the flag).
 
-    if views < 1 or width < 8 or height < 8 or spp < 1:
-        raise NeusL0Error(f"synth: need views >= 1, width/height >= 8, spp >= 1 "
-                          f"(got {views}, {width}x{height}, spp {spp})")
-    t_start = time.time()
-    out = Path(out)
+    Raises:
+        NeusL0Error: views < 1, width or height < 8, spp < 1, or a seed outside
+            [0, MAX_SEED].
+    """
+    for flag, value, least in (("--views", views, 1), ("--width", width, 8),
+                               ("--height", height, 8), ("--spp", spp, 1)):
+        if value < least:
+            raise NeusL0Error(f"{flag} {value}: must be >= {least}")
+    if not 0 <= seed <= MAX_SEED:
+        raise NeusL0Error(f"--seed {seed}: must be in [0, {MAX_SEED}]")
 
-    # --- ground-truth surface in world units --------------------------------------------
-    truth = _true_surface(scene, gt_voxel)
-    name, gt_mesh, sdf, surface = truth.name, truth.mesh, truth.sdf, truth.surface
-    verts = np.asarray(gt_mesh.vertices)
+
+def _views_per_batch(width: int, height: int, spp: int) -> int:
+    """Views rendered together: as many as fit in `RAYS_PER_BATCH` rays (at least one)."""
+    return max(1, RAYS_PER_BATCH // ((spp * spp + 1) * width * height))
+
+
+def render_bytes(views: int, width: int, height: int, spp: int) -> int:
+    """Estimated peak host memory of `make_scene`: the depth maps of every view, one render
+    batch (`BYTES_PER_RAY` a ray, spp^2 + 1 rays a pixel) and `FIXED_BYTES`."""
+    batch = min(views, _views_per_batch(width, height, spp))
+    rays = batch * (spp * spp + 1) * width * height
+    return int(FIXED_BYTES + 4 * views * width * height + BYTES_PER_RAY * rays)
+
+
+def check_render_memory(views: int, width: int, height: int, spp: int,
+                        available: int | None) -> None:
+    """Refuse a scene whose rendering would not fit in `available` bytes (None: no check).
+
+    Raises:
+        NeusL0Error: one line with the flags, the estimate and the memory available.
+    """
+    need = render_bytes(views, width, height, spp)
+    if available is None or need <= available:
+        return
+    raise NeusL0Error(f"--views {views} --width {width} --height {height} --spp {spp}: "
+                      f"rendering needs about {_gib(need)} of memory, {_gib(available)} is "
+                      "available; use fewer views, smaller images or a smaller --spp")
+
+
+def _gib(n: float) -> str:
+    """Bytes as GiB, or TiB where large."""
+    return f"{n / 2**40:.3g} TiB" if n >= 2**40 else f"{n / 2**30:.3g} GiB"
+
+
+def _replaceable(out: Path) -> Path:
+    """The folder to (re)write for `out` (a link's target); refuses what must not go.
+
+    Raises:
+        NeusL0Error: `out` is a file, the current folder (or holds it), or a folder that
+            is not empty and not a synthetic scene (replacing it would delete its files).
+    """
+    target = Path(os.path.realpath(out))
+    if target.exists() and not target.is_dir():
+        raise NeusL0Error(f"{out}: exists and is not a folder")
+    if not target.is_dir():
+        return target
+    cwd = Path.cwd().resolve()
+    if target == cwd or target in cwd.parents:
+        raise NeusL0Error(f"{out}: is the current folder or holds it; give another folder")
+    names = sorted(p.name for p in target.iterdir())
+    if names and "scene.json" not in names:
+        raise NeusL0Error(f"{out}: not empty and not a synthetic scene (no scene.json); give "
+                          "a new or empty folder")
+    strangers = [n for n in names if n not in SCENE_ENTRIES
+                 and not (n.startswith(".") and ".tmp" in n) and n != ".DS_Store"]
+    if strangers:
+        raise NeusL0Error(f"{out}: holds {strangers[0]}, which is not part of a synthetic "
+                          "scene; replacing the scene would delete it (move it away or give "
+                          "another folder)")
+    return target
+
+
+def _sibling(target: Path, kind: str) -> Path:
+    """A new hidden name next to `target`: ``.NAME.XXXXXXXX.<kind>``."""
+    while True:
+        path = target.with_name(f".{target.name}.{secrets.token_hex(4)}.{kind}")
+        if not path.exists():
+            return path
+
+
+@contextlib.contextmanager
+def _staged_folder(target: Path):
+    """Yield a fresh temporary folder next to `target`; on success swap it in for `target`.
+
+    The old `target` is renamed away, the new folder renamed in, then the old one removed
+    (put back if the second rename fails). The temporary folder never outlives the block.
+    """
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _sibling(target, "tmp")
+    tmp.mkdir()
+    try:
+        yield tmp
+        if not target.exists():
+            os.rename(tmp, target)
+            return
+        old = _sibling(target, "old")
+        os.rename(target, old)
+        try:
+            os.rename(tmp, target)
+        except BaseException:
+            os.rename(old, target)
+            raise
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+@dataclasses.dataclass
+class _Rig:
+    """The cameras of a scene: the object's sphere (centre, radius, scale_mat), the camera
+    distance range, intrinsics K (3, 3) and per view c2w / world_mats (V, 4, 4)."""
+
+    centre: np.ndarray
+    radius: float
+    scale_mat: np.ndarray
+    dist: tuple[float, float]
+    K: np.ndarray
+    c2w: np.ndarray
+    world_mats: np.ndarray
+
+
+def _camera_rig(verts: np.ndarray, views: int, width: int, height: int, seed: int,
+                azimuth_span: float) -> _Rig:
+    """The DTU-like camera cap around the (V, 3) ground-truth vertices."""
     centre = 0.5 * (verts.min(0) + verts.max(0))
     radius = SPHERE_MARGIN * float(np.linalg.norm(verts - centre, axis=1).max())
-    scale_mat = sphere_scale_mat(centre, radius)
-
-    # --- cameras ------------------------------------------------------------------------
     dist = (DISTANCE_RANGE[0] * radius, DISTANCE_RANGE[1] * radius)
     eyes = cap_centres(views, centre, dist, azimuth_span_deg=azimuth_span, seed=seed)
     K = intrinsics_to_fit(width, height, radius, dist[0], fill=1.0)
     w2c = np.stack([look_at(e, centre) for e in eyes])
-    c2w = np.linalg.inv(w2c)
-    world_mats = np.stack([projection_matrix(K, m) for m in w2c])
+    return _Rig(centre, radius, sphere_scale_mat(centre, radius), dist, K, np.linalg.inv(w2c),
+                np.stack([projection_matrix(K, m) for m in w2c]))
 
-    # --- render -------------------------------------------------------------------------
-    style = Style(scale=radius, center=tuple(centre), backdrop_radius=8.0 * dist[1],
-                  seed=seed)
-    per_batch = max(1, RAYS_PER_BATCH // ((spp * spp + 1) * width * height))
-    rgb = np.empty((views, height, width, 3), np.float32)
-    cover = np.empty((views, height, width), np.float32)
+
+def _render_into(folder: Path, truth: _TrueSurface, rig: _Rig, size: tuple[int, int],
+                 spp: int, seed: int, progress: bool) -> np.ndarray:
+    """Render every view, writing image/NNN.png and mask/NNN.png into `folder` batch by
+    batch; returns the depth maps (V, H, W) float32 (camera z, ``inf`` on misses)."""
+    from tqdm import tqdm
+
+    width, height = size
+    views = len(rig.c2w)
+    style = Style(scale=rig.radius, center=tuple(rig.centre),
+                  backdrop_radius=8.0 * rig.dist[1], seed=seed)
+    per_batch = _views_per_batch(width, height, spp)
     depth = np.empty((views, height, width), np.float32)
-    Ks = np.repeat(K[None], views, axis=0)
-    with torch.no_grad(), tqdm(total=views, desc=f"render {name}", unit="view",
+    Ks = np.repeat(rig.K[None], views, axis=0)
+    for sub in ("image", "mask"):
+        (folder / sub).mkdir()
+    with torch.no_grad(), tqdm(total=views, desc=f"render {truth.name}", unit="view",
                                disable=not progress) as bar:
         for v0 in range(0, views, per_batch):
             sl = slice(v0, min(views, v0 + per_batch))
-            r = render_views(surface, style, Ks[sl], c2w[sl],
-                             height, width, spp)
-            rgb[sl], cover[sl], depth[sl] = r["rgb"], r["coverage"], r["depth"]
+            r = render_views(truth.surface, style, Ks[sl], rig.c2w[sl], height, width, spp)
+            depth[sl] = r["depth"]
+            for k, i in enumerate(range(sl.start, sl.stop)):
+                _write_png(folder / "image" / f"{i:03d}.png", r["rgb"][k])
+                m = (r["coverage"][k] >= 0.5).astype(np.float32)
+                _write_png(folder / "mask" / f"{i:03d}.png", np.repeat(m[..., None], 3, -1))
             bar.update(sl.stop - sl.start)
+    return depth
 
-    # --- ground-truth points --------------------------------------------------------------
-    n_pts = int(np.ceil(gt_mesh.area / point_spacing ** 2))
-    pts, _ = trimesh.sample.sample_surface(gt_mesh, n_pts, seed=seed)
+
+def _gt_points(truth: _TrueSurface, rig: _Rig, depth: np.ndarray, spacing: float,
+               seed: int) -> np.ndarray:
+    """Exact surface points about `spacing` apart that some camera sees: (N, 3) float64."""
+    import trimesh
+
+    n_pts = int(np.ceil(truth.mesh.area / spacing ** 2))
+    pts, _ = trimesh.sample.sample_surface(truth.mesh, n_pts, seed=seed)
     pts = np.asarray(pts, np.float64)
-    if sdf is not None:
-        pts = _exact_surface_points(sdf, pts, iters=12)
-    pts = pts[_visible(pts, world_mats, depth, K)]
+    if truth.sdf is not None:
+        pts = _exact_surface_points(truth.sdf, pts, iters=12)
+    return pts[_visible(pts, rig.world_mats, depth, rig.K)]
 
-    # --- write --------------------------------------------------------------------------
-    for sub in ("image", "mask"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    for i in range(views):
-        _write_png(out / "image" / f"{i:03d}.png", rgb[i])
-        m = (cover[i] >= 0.5).astype(np.float32)
-        _write_png(out / "mask" / f"{i:03d}.png", np.repeat(m[..., None], 3, -1))
-    cams = {}
-    for i in range(views):
-        cams[f"world_mat_{i}"] = world_mats[i]
-        cams[f"scale_mat_{i}"] = scale_mat
-    depths = {f"depth_{i}": depth[i] for i in range(views)}
-    atomic_write(out / "cameras_sphere.npz", lambda p: _save_npz(p, cams, compressed=False))
-    atomic_write(out / "gt_depth.npz", lambda p: _save_npz(p, depths, compressed=True))
-    write_ply(out / "gt_mesh.ply", np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces))
-    write_ply(out / "gt_points.ply", pts)
-    atomic_write_json(out / "features.json", {"features": truth.features})
-    atomic_write_json(out / "scene.json", {
-        "name": name, "seed": seed, "views": views, "width": width, "height": height,
-        "spp": spp, "source": str(scene), "made_by": truth.made,
-        "world_units": "millimetres (DTU-like)",
-        "sphere": {"center": centre.tolist(), "radius": radius, "margin": SPHERE_MARGIN},
-        "cameras": {"elevation_deg": [20.0, 70.0], "azimuth_span_deg": azimuth_span,
-                    "distance": list(dist), "focal": float(K[0, 0]),
-                    "intrinsics": K.tolist(), "c2w_world": c2w.tolist()},
-        "gt_points": {"count": int(len(pts)), "spacing": point_spacing},
-        "gt_mesh": {"vertices": int(len(gt_mesh.vertices)), "faces": int(len(gt_mesh.faces)),
-                    "voxel": truth.voxel},
-        "seconds": round(time.time() - t_start, 2),
-    })
-    return out
+
+def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spacing,
+                azimuth_span, progress) -> Path:
+    check_scene_args(views, width, height, spp, seed)
+    t_start = time.time()
+    target = _replaceable(Path(out))
+    truth = _true_surface(scene, gt_voxel)
+    gt_mesh = truth.mesh
+    rig = _camera_rig(np.asarray(gt_mesh.vertices), views, width, height, seed, azimuth_span)
+    with _staged_folder(target) as tmp:
+        depth = _render_into(tmp, truth, rig, (width, height), spp, seed, progress)
+        pts = _gt_points(truth, rig, depth, point_spacing, seed)
+        if len(pts) == 0:
+            raise NeusL0Error(f"{scene}: no camera sees any ground-truth point")
+        cams = {}
+        for i in range(views):
+            cams[f"world_mat_{i}"] = rig.world_mats[i]
+            cams[f"scale_mat_{i}"] = rig.scale_mat
+        depths = {f"depth_{i}": depth[i] for i in range(views)}
+        atomic_write(tmp / "cameras_sphere.npz", lambda p: _save_npz(p, cams, compressed=False))
+        atomic_write(tmp / "gt_depth.npz", lambda p: _save_npz(p, depths, compressed=True))
+        write_ply(tmp / "gt_mesh.ply", np.asarray(gt_mesh.vertices), np.asarray(gt_mesh.faces))
+        write_ply(tmp / "gt_points.ply", pts)
+        atomic_write_json(tmp / "features.json", {"features": truth.features})
+        atomic_write_json(tmp / "scene.json", {
+            "name": truth.name, "seed": seed, "views": views, "width": width,
+            "height": height, "spp": spp, "source": str(scene), "made_by": truth.made,
+            "world_units": "millimetres (DTU-like)",
+            "sphere": {"center": rig.centre.tolist(), "radius": rig.radius,
+                       "margin": SPHERE_MARGIN},
+            "cameras": {"elevation_deg": [20.0, 70.0], "azimuth_span_deg": azimuth_span,
+                        "distance": list(rig.dist), "focal": float(rig.K[0, 0]),
+                        "intrinsics": rig.K.tolist(), "c2w_world": rig.c2w.tolist()},
+            "gt_points": {"count": int(len(pts)), "spacing": point_spacing},
+            "gt_mesh": {"vertices": int(len(gt_mesh.vertices)),
+                        "faces": int(len(gt_mesh.faces)), "voxel": truth.voxel},
+            "seconds": round(time.time() - t_start, 2),
+        })
+    return Path(out)
 
 
 def builtin_names() -> list[str]:
@@ -351,4 +546,5 @@ def builtin_names() -> list[str]:
     return list(BUILTIN_SHAPES)
 
 
-__all__ = ["make_scene", "builtin_names", "BuiltinShape"]
+__all__ = ["make_scene", "builtin_names", "BuiltinShape", "check_scene_args", "check_render_memory",
+           "render_bytes"]

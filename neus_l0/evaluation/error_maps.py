@@ -7,10 +7,24 @@ from pathlib import Path
 
 import numpy as np
 
+from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.io import write_ply_mesh, write_ply_points
 
 #: Colour of points left out of the score (outside the region, below the plane).
 EXCLUDED_RGBA = (160, 160, 160, 255)
+
+
+def check_cmap(name: str) -> None:
+    """Refuse a name that matplotlib's colormap registry does not hold (before any work).
+
+    Raises:
+        NeusL0Error: one line naming the flag and a few valid names.
+    """
+    import matplotlib
+
+    if name not in matplotlib.colormaps:
+        raise NeusL0Error(f"--cmap {name}: not a matplotlib colormap (e.g. jet, viridis, "
+                          "turbo, magma)")
 
 
 def colorize(distances: np.ndarray, vmax: float, cmap: str = "jet",

@@ -4,6 +4,12 @@
 a bad path fails before the slow part), load and optionally cull the mesh, sample and thin
 it, score it with the ground truth's protocol, and optionally write error maps. The
 protocol and the report's fields are documented in docs/EVALUATION.md.
+
+Every setting is checked before any file is read (`ScoreSpec.check`: finite, in range, a
+colormap matplotlib knows), and the number of points the sampling will make (the mesh's
+area / density^2, `pointcloud.expected_samples`) is checked against the memory available
+before sampling. The report holds no NaN or infinity (they become null), so that the JSON
+written is valid.
 """
 
 from __future__ import annotations
@@ -23,8 +29,16 @@ from neus_l0.evaluation.chamfer import ChamferResult, nearest_distances
 from neus_l0.evaluation.cull import cull_mesh
 from neus_l0.evaluation.dtu import DTU_DENSITY, DTU_MARGIN_HIGH, DTU_MARGIN_LOW, DTU_MAX_DIST
 from neus_l0.evaluation.io import load_mesh, load_points
-from neus_l0.evaluation.pointcloud import sample_mesh, thin_points
+from neus_l0.evaluation.pointcloud import (
+    expected_samples,
+    sample_mesh,
+    sampling_bytes,
+    thin_points,
+)
 from neus_l0.evaluation.synthetic import DEPTH_TOL, SyntheticGT
+
+#: Expected sampled points from which `score_mesh` logs its steps and shows progress bars.
+PROGRESS_POINTS = 2_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,8 +60,8 @@ class ScoreSpec:
         max_dist: distances >= this are left out of both means.
         margin_low, margin_high: evaluation box margins below / above the GT box.
         depth_tol: synthetic visibility tolerance (world units behind the true surface).
-        seed: seed of the thinning order.
-        workers: kd-tree threads (-1: all cores).
+        seed: seed of the thinning order (>= 0).
+        workers: kd-tree threads (-1: all cores, else >= 1).
     """
 
     scene: str | Path | None = None
@@ -67,14 +81,32 @@ class ScoreSpec:
     workers: int = -1
 
     def check(self) -> None:
-        """Raise `NeusL0Error` (one line, in the flags' words) on inconsistent settings."""
+        """Raise `NeusL0Error` (one line, in the flags' words) on inconsistent or out-of-range
+        settings: every number finite and in range, the colormap known to matplotlib."""
+        from neus_l0.evaluation.error_maps import check_cmap
+
         if (self.scene is None) == (self.dtu_dir is None):
             raise NeusL0Error("give exactly one ground truth: a synthetic scene or a DTU folder")
         if self.dtu_dir is not None and self.scan is None:
             raise NeusL0Error("--dtu needs --scan (the DTU scan number)")
-        for name, value in (("density", self.density), ("max-dist", self.max_dist)):
-            if not value > 0:
-                raise NeusL0Error(f"--{name} must be positive")
+        positive = [("density", self.density), ("max-dist", self.max_dist)]
+        if self.vmax is not None:
+            positive.append(("vmax", self.vmax))
+        for name, value in positive:
+            if not (math.isfinite(value) and value > 0):
+                raise NeusL0Error(f"--{name} {value}: must be a positive finite number")
+        for name, value in (("margin-low", self.margin_low), ("margin-high", self.margin_high),
+                            ("depth-tol", self.depth_tol)):
+            if not (math.isfinite(value) and value >= 0):
+                raise NeusL0Error(f"--{name} {value}: must be a finite number >= 0")
+        for name, value in (("scan", self.scan), ("cull-dilate", self.cull_dilate),
+                            ("seed", self.seed)):
+            if value is not None and value < 0:
+                raise NeusL0Error(f"--{name} {value}: must be >= 0")
+        if self.workers == 0 or self.workers < -1:
+            raise NeusL0Error(f"--workers {self.workers}: give -1 (all cores) or a number of "
+                              "threads >= 1")
+        check_cmap(self.cmap)
 
     @property
     def margins(self) -> dict[str, float]:
@@ -170,16 +202,72 @@ def load_culled_mesh(mesh: Path, spec: ScoreSpec,
     return vertices, faces, cull_info
 
 
+def check_sampling(vertices: np.ndarray, faces: np.ndarray, density: float,
+                   available: int | None) -> float:
+    """Refuse a density whose sampling would not fit in memory, before sampling.
+
+    Args:
+        vertices (V, 3), faces (F, 3): the mesh to sample; density: `--density`;
+        available: bytes of memory available (None: unknown, no check).
+
+    Returns:
+        The expected number of sampled points (`pointcloud.expected_samples`).
+
+    Raises:
+        NeusL0Error: one line with the point count, the memory it needs, the memory
+            available and the smallest density that fits.
+    """
+    n = expected_samples(vertices, faces, density)
+    if available is None or sampling_bytes(n) <= available:
+        return n
+    area = (n - len(vertices)) * density**2
+    per_point = sampling_bytes(1.0) - sampling_bytes(0.0)
+    room = (available - sampling_bytes(0.0)) / per_point - len(vertices)  # grid points
+    if room <= 0 or area <= 0:
+        fit = "not even the mesh's vertices fit; free some memory"
+    else:
+        smallest = math.sqrt(area / room)
+        fit = f"the smallest density that fits is about {_round_up(smallest)}"
+    raise NeusL0Error(f"--density {density}: sampling the mesh (area {area:.4g}) would make "
+                      f"about {n:.3g} points, needing about {_gib(sampling_bytes(n))} of "
+                      f"memory, {_gib(available)} is available; {fit}")
+
+
+def _round_up(x: float) -> str:
+    """`x` rounded up to two significant digits, as text."""
+    scale = 10.0 ** (math.floor(math.log10(x)) - 1)
+    return f"{math.ceil(x / scale - 1e-9) * scale:.2g}"
+
+
+def _gib(n: float) -> str:
+    """Bytes as GiB, or TiB / PiB where large."""
+    for unit, scale in (("PiB", 2**50), ("TiB", 2**40)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n / 2**30:.3g} GiB"
+
+
 def sample_prediction(vertices: np.ndarray, faces: np.ndarray, spec: ScoreSpec,
-                      counts: dict) -> np.ndarray:
+                      counts: dict, bars: bool = False) -> np.ndarray:
     """DTU-style sampling of the mesh at `spec.density`, then thinning to that radius.
+
+    Args:
+        vertices (V, 3), faces (F, 3): the mesh; spec: the settings; counts: report counts,
+        updated in place; bars: show tqdm progress bars (stderr) for both steps.
 
     Returns:
         (N, 3) thinned points; `counts` gets pred_sampled and pred_thinned.
     """
-    sampled = sample_mesh(vertices, faces, spec.density)
+    from tqdm import tqdm
+
+    expected = int(expected_samples(vertices, faces, spec.density))
+    with tqdm(total=expected, desc="eval: sample", unit="pt", unit_scale=True,
+              disable=not bars, leave=False) as bar:
+        sampled = sample_mesh(vertices, faces, spec.density, progress=bar.update)
     counts["pred_sampled"] = len(sampled)
-    pred = thin_points(sampled, spec.density, seed=spec.seed)
+    with tqdm(total=len(sampled), desc="eval: thin", unit="pt", unit_scale=True,
+              disable=not bars, leave=False) as bar:
+        pred = thin_points(sampled, spec.density, seed=spec.seed, progress=bar.update)
     counts["pred_thinned"] = len(pred)
     return pred
 
@@ -211,18 +299,37 @@ def _num(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
+def finite_json(obj):
+    """`obj` with every non-finite float (NaN, infinity) replaced by None, recursively, so
+    that ``json.dumps(..., allow_nan=False)`` accepts it."""
+    if isinstance(obj, dict):
+        return {k: finite_json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_json(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
 def _stderr(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
 def score_mesh(mesh: str | Path, spec: ScoreSpec | None = None, *,
-               log: Callable[[str], None] = _stderr, **fields) -> dict:
+               log: Callable[[str], None] = _stderr, memory: int | None = None,
+               progress: bool = False, **fields) -> dict:
     """Chamfer distance of a mesh (world units) to a synthetic scene's or DTU's ground truth.
 
     Args:
         mesh: predicted mesh file (PLY/OBJ), world units.
         spec: the settings (`ScoreSpec`); None: the defaults.
         log: progress messages.
+        memory: bytes of memory available (None: no check); a density whose sampling
+            would need more (`check_sampling`) is refused before sampling.
+        progress: show tqdm bars (stderr) while sampling and thinning, when at least
+            `PROGRESS_POINTS` points are expected.
         **fields: `ScoreSpec` fields that replace the spec's (``scene=..., density=...``),
             so that short calls stay short.
 
@@ -242,9 +349,16 @@ def score_mesh(mesh: str | Path, spec: ScoreSpec | None = None, *,
     truth = load_ground_truth(spec)  # first: a bad GT path fails before the slow part
     counts: dict = {}
     vertices, faces, cull_info = load_culled_mesh(mesh, spec, counts)
-    pred = sample_prediction(vertices, faces, spec, counts)
+    expected = check_sampling(vertices, faces, spec.density, memory)
+    if expected >= PROGRESS_POINTS:
+        log(f"eval: sampling about {expected:.3g} points at density {spec.density}")
+    pred = sample_prediction(vertices, faces, spec, counts,
+                             bars=progress and expected >= PROGRESS_POINTS)
     log(f"eval: {counts['pred_sampled']} points sampled, {len(pred)} after thinning "
         f"({time.perf_counter() - t0:.1f} s)")
+    if len(pred) >= PROGRESS_POINTS:
+        log(f"eval: scoring {len(pred)} points against {len(truth.points)} ground-truth "
+            "points")
     res, masks = truth.evaluate(pred, vertices, faces, spec)
     counts.update(res.counts)
     maps = None if spec.error_maps is None else write_maps(truth, vertices, faces, res,
@@ -254,7 +368,7 @@ def score_mesh(mesh: str | Path, spec: ScoreSpec | None = None, *,
                 "seed": spec.seed, "distance": res.distance, "cull": cull_info}
     if truth.protocol == "synthetic":
         settings["depth_tol"] = spec.depth_tol
-    return {
+    return finite_json({
         "protocol": truth.protocol,
         "mesh": str(mesh),
         "gt": truth.info,
@@ -266,4 +380,4 @@ def score_mesh(mesh: str | Path, spec: ScoreSpec | None = None, *,
         "error_maps": maps,
         "seconds": round(time.perf_counter() - t0, 3),
         "version": __version__,
-    }
+    })
