@@ -10,8 +10,8 @@ checkpoints/, metrics.jsonl, run.json):
   PSNR per view, memory, timings (``extract_s``: the final marching cubes alone), the final
   sample distance, and ``curve``: Chamfer against training time, one point per snapshot
   and the final model's last (see `execute`);
-* ``status.json``: ``{"status": "done" | "failed", "row": {...}}``, the run's results row
-  (see `neus_l0.bench.results.COLUMNS`), written last;
+* ``status.json``: ``{"status": "done" | "failed" | "interrupted", "row": {...}}``, the
+  run's results row (see `neus_l0.bench.results.COLUMNS`), written last;
 * ``progress.json``: the step the run is at (`neus_l0.bench.progress`), which the sweep
   shows as a progress bar while it waits.
 
@@ -24,6 +24,14 @@ A process per run gives per-run peak memory (``ru_maxrss`` of the process itself
 ``torch.cuda.max_memory_allocated`` on a GPU) and isolates crashes: the sweep records a run
 whose process dies without a status.json as failed, with its exit code and the last line of
 ``log.txt``.
+
+Signals. SIGTERM or SIGINT stops a run as it stops training (`neus_l0.train.signals`): the
+training step ends, the checkpoint is written, and the run's process records the run as
+*interrupted* (neither done nor failed; the next sweep runs it again) and exits 143 / 130;
+outside training the signal stops the run's process at once, recorded the same way. The
+sweep's process passes the signals it gets on to the running run (`ForwardSignals`), waits
+for it, and stops too; a run whose sweep is killed outright stops in the same way
+(`stop_when_orphaned`).
 """
 
 from __future__ import annotations
@@ -34,8 +42,10 @@ import json
 import math
 import os
 import resource
+import signal
 import subprocess
 import sys
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -43,6 +53,7 @@ from pathlib import Path
 from neus_l0.atomic import atomic_write_json
 from neus_l0.bench.results import make_row
 from neus_l0.run.metrics import snapshot_lines
+from neus_l0.train.signals import STOP_SIGNALS, StopOnSignal
 
 #: Settings every bench run gets before the user's overrides: no validation renders and a
 #: checkpoint only at the end (both would count against the budget).
@@ -376,6 +387,10 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     result = train(train_scene, cfg, run_dir, device=spec.device, progress=progress,
                    hooks=[hook, ticker] if hook else [ticker], snapshots=spec.snapshots)
     timings["train_s"] = result.seconds
+    if result.signal:
+        raise RunInterrupted(result.exit_code - 128, f"stopped by {result.signal} at "
+                             f"iteration {result.iteration}; checkpoint "
+                             f"{Path(result.checkpoint).name} written")
     peak_rss = _peak_rss_mb()
     peak_gpu = (torch.cuda.max_memory_allocated() / 2**20 if spec.device == "cuda" else None)
 
@@ -432,6 +447,87 @@ def failed_row(spec: RunSpec, error: str) -> dict:
     return make_row(**spec.base_row(), status="failed", error=error)
 
 
+def interrupted_row(spec: RunSpec, why: str) -> dict:
+    """The results row of a run that a signal stopped (`why`: by which, where)."""
+    return make_row(**spec.base_row(), status="interrupted", error=why)
+
+
+class RunInterrupted(BaseException):  # noqa: N818 - like KeyboardInterrupt, not an error
+    """A signal stopped the run (a BaseException, so that ``except Exception`` lets it by).
+
+    Attributes:
+        signum: the signal's number; why: one line saying where the run stopped.
+    """
+
+    def __init__(self, signum: int, why: str = ""):
+        super().__init__(signum, why)
+        self.signum, self.why = int(signum), why
+
+
+def _raise_interrupted(signum: int, frame) -> None:
+    raise RunInterrupted(signum, f"stopped by {signal.Signals(signum).name}")
+
+
+def stop_when_orphaned(every: float = 1.0) -> threading.Thread:
+    """SIGTERM to this process once its parent (the sweep) is gone.
+
+    A sweep killed outright (SIGKILL) cannot pass a signal on; its run then stops as if it
+    had (checkpoint, recorded as interrupted) instead of training on for its budget.
+    """
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(every)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    thread = threading.Thread(target=watch, name="stop-when-orphaned", daemon=True)
+    thread.start()
+    return thread
+
+
+class ForwardSignals(StopOnSignal):
+    """`StopOnSignal` for a process that waits on a child: each SIGTERM / SIGINT is also
+    passed on to the child named by `watch` (which stops as training does: the step ends,
+    the checkpoint is written, it exits 143 / 130); a third signal kills the child.
+
+    Unlike `StopOnSignal`, a second SIGINT raises nothing here: it is passed on (and the
+    child's training stops at once), and this process goes on waiting for the child.
+    """
+
+    def __init__(self, signals=STOP_SIGNALS):
+        super().__init__(signals)
+        self.count = 0
+        self._child: subprocess.Popen | None = None
+
+    def watch(self, child: subprocess.Popen | None) -> None:
+        """Pass the signals on to `child` from now on (None: to no one); a signal that came
+        before it is passed on at once."""
+        self._child = child
+        if child is not None and self.requested:
+            self._forward(int(self.signum))
+
+    def _forward(self, signum: int) -> None:
+        child = self._child
+        if child is None or child.returncode is not None:
+            return
+        try:
+            if self.count <= 2:
+                child.send_signal(signum)
+            else:
+                child.kill()
+        except ProcessLookupError:  # it has just exited
+            pass
+
+    def _handle(self, signum: int, frame) -> None:
+        self.count += 1
+        if not self.requested:
+            self.requested = True
+            self.signum = int(signum)
+            self.signal_name = signal.Signals(signum).name
+        self._forward(signum)
+
+
 def write_status(spec: RunSpec, row: dict) -> None:
     atomic_write_json(spec.run_dir / "status.json", {"status": row["status"], "row": row})
 
@@ -449,15 +545,31 @@ def main(argv: list[str] | None = None) -> int:
     from neus_l0.bench.progress import PROGRESS_FILE, StepReporter
 
     spec = read_spec(argv[0])
+    # outside training (whose own handlers stop it after a step) a signal stops the run now
+    previous = {s: signal.signal(s, _raise_interrupted) for s in STOP_SIGNALS}
+    stop_when_orphaned()
     try:
-        row = execute(spec, report=StepReporter(spec.run_dir / PROGRESS_FILE))
-    except Exception as exc:  # recorded, never raised: the sweep goes on
-        traceback.print_exc()
-        msg = str(exc).splitlines()[0] if str(exc) else ""
-        write_status(spec, failed_row(spec, f"{type(exc).__name__}: {msg}"))
-        return 1
-    write_status(spec, row)
-    return 0
+        try:
+            row = execute(spec, report=StepReporter(spec.run_dir / PROGRESS_FILE))
+        except RunInterrupted as exc:
+            why = exc.why or f"stopped by {signal.Signals(exc.signum).name}"
+            signum = exc.signum
+        except KeyboardInterrupt:  # a second Ctrl-C inside training
+            why, signum = "stopped by a second SIGINT (no final checkpoint)", signal.SIGINT
+        except Exception as exc:  # recorded, never raised: the sweep goes on
+            traceback.print_exc()
+            msg = str(exc).splitlines()[0] if str(exc) else ""
+            write_status(spec, failed_row(spec, f"{type(exc).__name__}: {msg}"))
+            return 1
+        else:
+            write_status(spec, row)
+            return 0
+        print(f"{spec.name}: {why}", file=sys.stderr, flush=True)
+        write_status(spec, interrupted_row(spec, why))
+        return 128 + int(signum)
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
 
 
 def _last_line(path: Path) -> str:
@@ -486,7 +598,8 @@ def _wait(proc: subprocess.Popen, timeout: float | None, watch, every: float = 0
             watch()
 
 
-def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None) -> dict:
+def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None,
+                      stop: ForwardSignals | None = None) -> dict:
     """Execute `spec` in a fresh Python process and return its row (never raises for the run).
 
     The run folder is emptied of an unfinished earlier attempt first; the process's output
@@ -496,6 +609,11 @@ def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None) -
         timeout: seconds after which the process is killed (None: no limit).
         watch: called with the run's progress file (`neus_l0.bench.progress`) about twice a
             second while the process runs, e.g. `StepDisplay.poll`.
+        stop: the caller's active `ForwardSignals`: the process then runs in its own session
+            (a Ctrl-C in the terminal reaches it once, through `stop`, not twice), `stop`
+            passes SIGTERM / SIGINT on to it, and a run that a signal stopped is recorded
+            as interrupted. None: the process shares this one's session (as under Ray,
+            whose workers cannot handle signals).
     """
     import shutil
 
@@ -510,15 +628,22 @@ def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None) -
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     log = run_dir / "log.txt"
     progress_path = run_dir / PROGRESS_FILE
+    forward = stop is not None and stop.active
     with open(log, "w", encoding="utf-8") as f:
         proc = subprocess.Popen([sys.executable, "-m", "neus_l0.bench.runner", str(spec_path)],
-                                stdout=f, stderr=subprocess.STDOUT, env=env)
+                                stdout=f, stderr=subprocess.STDOUT, env=env,
+                                start_new_session=forward)
         try:
+            if forward:
+                stop.watch(proc)
             rc = _wait(proc, timeout, None if watch is None else lambda: watch(progress_path))
         except BaseException:  # e.g. Ctrl-C in the sweep: do not leave the run behind
             proc.kill()
             proc.wait()
             raise
+        finally:
+            if forward:
+                stop.watch(None)
     status = run_dir / "status.json"
     if status.is_file():
         try:
@@ -531,6 +656,11 @@ def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None) -
         why = f"killed by signal {-rc}"
     else:
         why = f"exit code {rc}"
+    if forward and stop.requested:
+        row = interrupted_row(spec, f"stopped by {stop.signal_name} (run process {why}); "
+                                    f"{_last_line(log)}")
+        write_status(spec, row)
+        return row
     row = failed_row(spec, f"run process {why}; {_last_line(log)}")
     write_status(spec, row)
     return row

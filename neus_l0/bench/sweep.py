@@ -22,19 +22,27 @@ iterations in the same budget, which is what the benchmark measures. Validation 
 off and checkpoints are written only at the end (both would count against the budget); the
 sample-distance hook's time is not counted (`neus_l0.train.loop.train`). A run that reaches
 `train.iters` before its budget ends there (its `train_seconds` is below the budget).
+
+One sweep at a time: the sweep folder is locked (`neus_l0.run.lock.RunLock`, ``DIR/.lock``)
+for the whole sweep, so a second sweep into it is refused before it touches a run. SIGTERM
+or SIGINT stops the sweep: the running run is told (`neus_l0.bench.runner.ForwardSignals`),
+checkpoints, is recorded as interrupted, and no further run starts
+(`SweepOutcome.signal`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from neus_l0.atomic import atomic_write_json
 from neus_l0.bench.results import collect_rows, run_name, write_results
-from neus_l0.bench.runner import BENCH_OVERRIDES, RunSpec, run_in_subprocess
+from neus_l0.bench.runner import BENCH_OVERRIDES, ForwardSignals, RunSpec, run_in_subprocess
 from neus_l0.errors import NeusL0Error
+from neus_l0.run.lock import RunLock
 
 #: Settings that must match between invocations on the same sweep folder.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
@@ -49,11 +57,18 @@ class SweepOutcome:
         rows: every row of results.csv after the sweep.
         ran: names of the runs executed by this call.
         skipped: names of the runs already done before it.
+        signal: ``SIGTERM`` / ``SIGINT`` when one stopped the sweep (the running run is
+            recorded as interrupted, the runs after it did not start), else None.
+        exit_code: the shell's code for that signal (143, 130), else 0.
+        not_started: names of the runs a signal kept from starting.
     """
 
     rows: list[dict]
     ran: list[str]
     skipped: list[str]
+    signal: str | None = None
+    exit_code: int = 0
+    not_started: list[str] = dataclasses.field(default_factory=list)
 
 
 def prepare_scene(entry: str, out_dir: Path, views: int, width: int, height: int,
@@ -92,6 +107,9 @@ def prepare_scene(entry: str, out_dir: Path, views: int, width: int, height: int
             raise NeusL0Error(f"{folder}: made with {have[0]} views of {have[1]}x{have[2]}, "
                               f"asked for {views} of {width}x{height} (use another --out)")
         return entry, folder.resolve()
+    if progress:  # the ground truth after the rendering shows no bar of its own
+        print(f"bench: making the scene {entry} ({views} views, {width}x{height}, with "
+              f"ground truth) in {folder} ...", file=sys.stderr, flush=True)
     make_scene(entry, folder, views=views, width=width, height=height, seed=0,
                progress=progress)
     return entry, folder.resolve()
@@ -258,10 +276,13 @@ def run_sweep(spec: SweepSpec, *, progress: bool = True,
 
     Returns:
         a `SweepOutcome`. A failing run is recorded (status failed, error) and the sweep
-        goes on; runs whose status.json says done are skipped.
+        goes on; runs whose status.json says done are skipped. SIGTERM / SIGINT stop the
+        sweep after the running run has checkpointed (local backend; see the module
+        docstring).
 
     Raises:
-        NeusL0Error: bad scenes or config, or a sweep folder made with other settings.
+        NeusL0Error: bad scenes or config, a sweep folder made with other settings, or one
+            that another sweep is using.
     """
     from neus_l0.config.load import load_config, to_dict
 
@@ -274,21 +295,34 @@ def run_sweep(spec: SweepSpec, *, progress: bool = True,
     # The config is resolved once, here: user errors surface before any run, and every run
     # gets exactly this config even if the YAML file changes while the sweep runs.
     config = to_dict(load_config(spec.conf, [*BENCH_OVERRIDES, *spec.overrides]))
-    check_settings(out_dir, spec.settings(config))
-    resolved = [prepare_scene(s, out_dir, spec.views, spec.width, spec.height, progress)
-                for s in spec.scenes]
-    names = [n for n, _ in resolved]
-    if len(set(names)) != len(names):
-        raise NeusL0Error(f"--scenes: two scenes share a name ({', '.join(names)})")
-    specs, skipped = plan_runs(spec, resolved, config)
-    write_results(out_dir, collect_rows(out_dir))
-    ran = _execute(specs, out_dir, spec, len(skipped), progress, on_row)
-    return SweepOutcome(collect_rows(out_dir), ran, [s.name for s in skipped])
+    with RunLock(out_dir):
+        check_settings(out_dir, spec.settings(config))
+        resolved = [prepare_scene(s, out_dir, spec.views, spec.width, spec.height, progress)
+                    for s in spec.scenes]
+        names = [n for n, _ in resolved]
+        if len(set(names)) != len(names):
+            raise NeusL0Error(f"--scenes: two scenes share a name ({', '.join(names)})")
+        specs, skipped = plan_runs(spec, resolved, config)
+        write_results(out_dir, collect_rows(out_dir))
+        ran, stop = _execute(specs, out_dir, spec, len(skipped), progress, on_row)
+        rows = collect_rows(out_dir)
+    stopped = stop is not None and stop.requested
+    return SweepOutcome(rows, ran, [s.name for s in skipped],
+                        signal=stop.signal_name if stopped else None,
+                        exit_code=stop.exit_code if stopped else 0,
+                        not_started=[s.name for s in specs if s.name not in ran]
+                        if stopped else [])
 
 
 def _execute(specs: list[RunSpec], out_dir: Path, spec: SweepSpec, n_skipped: int,
-             progress: bool, on_row: Callable[[dict], None] | None) -> list[str]:
-    """Run `specs` on the sweep's backend, with the progress bars; the names that ran."""
+             progress: bool, on_row: Callable[[dict], None] | None
+             ) -> tuple[list[str], ForwardSignals | None]:
+    """Run `specs` on the sweep's backend, with the progress bars.
+
+    Returns:
+        the names that ran, and the signal watcher of the local backend (None for Ray):
+        after a SIGTERM / SIGINT, passed on to the running run, no further run starts.
+    """
     from tqdm import tqdm
 
     from neus_l0.bench.progress import StepDisplay
@@ -308,13 +342,17 @@ def _execute(specs: list[RunSpec], out_dir: Path, spec: SweepSpec, n_skipped: in
         if on_row is not None:
             on_row(row)
 
+    stop = None
     try:
         if spec.backend == "local":
-            for run in specs:
-                bar.set_description(f"bench {run.name}")
-                display.start(run.name)
-                watch = display.poll if progress else None
-                finished(run_in_subprocess(run, spec.timeout, watch), run.name)
+            with ForwardSignals() as stop:
+                for run in specs:
+                    if stop.requested:
+                        break
+                    bar.set_description(f"bench {run.name}")
+                    display.start(run.name)
+                    watch = display.poll if progress else None
+                    finished(run_in_subprocess(run, spec.timeout, watch, stop), run.name)
         else:
             from neus_l0.bench.ray_backend import run_with_ray
 
@@ -323,7 +361,7 @@ def _execute(specs: list[RunSpec], out_dir: Path, spec: SweepSpec, n_skipped: in
     finally:
         step_bar.close()
         bar.close()
-    return ran
+    return ran, stop
 
 
 def is_done(run_dir: Path) -> bool:

@@ -74,8 +74,23 @@ def score_demo_mesh(mesh_path, scene_dir) -> dict:
                       log=lambda _msg: None)
 
 
+def check_numbers(args: argparse.Namespace) -> None:
+    """Refuse an out-of-range number among the flags, naming the flag, before any work."""
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.mesh.extract import SPARSE_ABOVE
+    from neus_l0.mesh.memory import plan_extraction
+
+    if args.resolution < 8:
+        raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
+    if args.threads is not None and args.threads < 1:
+        raise NeusL0Error(f"--threads {args.threads}: must be at least 1 (leave it out for "
+                          "the free cores)")
+    plan_extraction("sparse" if args.resolution > SPARSE_ABOVE else "dense", args.resolution)
+
+
 def run(args: argparse.Namespace) -> int:
     import json
+    import sys
     import time
 
     import torch
@@ -91,9 +106,11 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.run.checkpoints import latest_checkpoint
     from neus_l0.train.loop import train
 
+    check_numbers(args)
     out = check_output_dir(args.out, "--out")
-    out.mkdir(parents=True, exist_ok=True)
+    cfg = load_config(args.conf, args.overrides)  # a bad config fails before any work
     device = pick_device(args.device)
+    out.mkdir(parents=True, exist_ok=True)
     threads = demo_threads(args.threads)
     torch.set_num_threads(threads)
     timings: dict[str, float] = {}
@@ -111,7 +128,6 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.monotonic()
     run_dir = out / "run"
-    cfg = load_config(args.conf, args.overrides)
     if not any(o.startswith("train.max_seconds=") for o in args.overrides):
         left = DEMO_BUDGET_S - (time.monotonic() - t_all) - DEMO_RESERVE_S
         cfg.train.max_seconds = max(30.0, left)
@@ -123,10 +139,15 @@ def run(args: argparse.Namespace) -> int:
           f"{' (resuming)' if resume else ''} ...", flush=True)
     result = train(scene, cfg, run_dir, device=device, resume=resume, progress=not args.quiet)
     timings["train_s"] = time.monotonic() - t0
+    if result.signal:
+        print(f"neus-l0 demo: stopped by {result.signal} at iteration {result.iteration}; "
+              f"checkpoint {result.checkpoint} written; run the same command again to "
+              "resume", file=sys.stderr)
+        return result.exit_code
 
     t0 = time.monotonic()
     print(f"[3/4] extracting the mesh at {args.resolution}^3 ...", flush=True)
-    mesh = mesh_from_run(run_dir, args.resolution, device).mesh
+    mesh = mesh_from_run(run_dir, args.resolution, device, progress=not args.quiet).mesh
     mesh_path = export_mesh(mesh, out / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0
 

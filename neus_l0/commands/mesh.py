@@ -45,6 +45,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--checkpoint", default=None,
                    help="a specific checkpoint (default the newest that loads)")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"])
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bar (by default one on stderr while the SDF is evaluated, "
+                        "when that takes over a second)")
     return p
 
 
@@ -95,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
     out, method, options = _check(args)
     device = pick_device(args.device)
     t0 = time.monotonic()
-    made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method)
+    made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
+                         progress=not args.quiet)
     mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "

@@ -17,6 +17,8 @@ Two extraction paths share one grid, ``linspace(-bound, bound, R)^3``:
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import math
 import time
@@ -46,14 +48,46 @@ _NONFINITE = np.float32(1e3)
 """Non-finite SDF values are read as this (far outside) before marching cubes."""
 
 
+#: A progress bar shows only once its work has taken this long (seconds).
+PROGRESS_DELAY_S = 1.0
+
+_PROGRESS: contextvars.ContextVar[bool] = contextvars.ContextVar("neus_l0_mesh_progress",
+                                                                 default=False)
+
+
+@contextlib.contextmanager
+def progress_bars(on: bool = True):
+    """Inside, the SDF evaluations of `sdf_grid` and `sparse_marching_cubes` (so of
+    `extract_mesh`) show a tqdm bar on stderr when they take over `PROGRESS_DELAY_S`,
+    unless called with ``progress=False``."""
+    token = _PROGRESS.set(bool(on))
+    try:
+        yield
+    finally:
+        _PROGRESS.reset(token)
+
+
+def _bar(progress: bool | None, total: int, desc: str, unit: str):
+    """A tqdm bar on stderr that appears only after `PROGRESS_DELAY_S` and is cleared at
+    the end (the caller prints the summary); a no-op bar when `progress` is False, or None
+    outside `progress_bars`."""
+    from tqdm import tqdm
+
+    on = _PROGRESS.get() if progress is None else progress
+    return tqdm(total=total, desc=desc, unit=unit, unit_scale=True, leave=False,
+                delay=PROGRESS_DELAY_S, disable=not on, dynamic_ncols=True)
+
+
 def _sdf_on_axes(sdf_fn: SdfFn, xs: Tensor, ys: Tensor, zs: Tensor,
-                 chunk: int) -> np.ndarray:
+                 chunk: int, progress: bool | None = None) -> np.ndarray:
     """Evaluate an SDF on the tensor product grid xs x ys x zs, slab by slab.
 
     Args:
         sdf_fn: the SDF (called under `torch.no_grad`).
         xs, ys, zs: (nx,), (ny,), (nz,) coordinates on the evaluation device.
         chunk: points per call of `sdf_fn`.
+        progress: a tqdm bar on stderr (points evaluated) when it takes over a second
+            (None: inside `progress_bars` only).
 
     Returns:
         (nx, ny, nz) float32 values.
@@ -62,17 +96,19 @@ def _sdf_on_axes(sdf_fn: SdfFn, xs: Tensor, ys: Tensor, zs: Tensor,
     out = np.empty((nx, ny, nz), dtype=np.float32)
     yz = torch.stack(torch.meshgrid(ys, zs, indexing="ij"), dim=-1).reshape(-1, 2)  # (ny*nz, 2)
     slabs = max(1, chunk // (ny * nz))
-    with torch.no_grad():
+    with torch.no_grad(), _bar(progress, nx * ny * nz, f"SDF grid {nx}^3", "pt") as bar:
         for x0 in range(0, nx, slabs):
             x = xs[x0:x0 + slabs]
             pts = torch.cat([x.repeat_interleave(ny * nz)[:, None], yz.repeat(len(x), 1)], dim=-1)
             vals = torch.cat([sdf_fn(p).reshape(-1) for p in pts.split(chunk)])
             out[x0:x0 + len(x)] = vals.reshape(len(x), ny, nz).float().cpu().numpy()
+            bar.update(len(pts))
     return out
 
 
 def sdf_grid(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
-             device: str | torch.device = "cpu", chunk: int = 2**18) -> np.ndarray:
+             device: str | torch.device = "cpu", chunk: int = 2**18,
+             progress: bool | None = None) -> np.ndarray:
     """Evaluate an SDF on the regular grid ``linspace(-bound, bound, resolution)^3``.
 
     Points are generated and evaluated slab by slab, `chunk` points at a time, so no tensor
@@ -84,12 +120,14 @@ def sdf_grid(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
         bound: half-size of the cube.
         device: where the points are evaluated.
         chunk: points per call of `sdf_fn`.
+        progress: a tqdm bar on stderr when it takes over a second (None: inside
+            `progress_bars` only).
 
     Returns:
         (R, R, R) float32 volume indexed [x, y, z].
     """
     axis = torch.linspace(-bound, bound, int(resolution), device=device)
-    return _sdf_on_axes(sdf_fn, axis, axis, axis, chunk)
+    return _sdf_on_axes(sdf_fn, axis, axis, axis, chunk, progress)
 
 
 def marching_cubes(volume: np.ndarray, bound: float = 1.0,
@@ -291,10 +329,39 @@ def _block_surface(vals: np.ndarray, extent: np.ndarray, origin: np.ndarray,
     return gv.astype(np.float64), f, face
 
 
+def _block_values(sdf_fn: SdfFn, axis: Tensor, blocks: Tensor, B: int, chunk: int,
+                  region: VisualHull | None) -> np.ndarray:
+    """The SDF on the (B + 1)^3 grid samples of each block of `sparse_marching_cubes`.
+
+    Args:
+        axis: (R,) the grid's coordinates; blocks: (m, 3) block indices; B: cells a block.
+        region: samples outside it read as far outside (None: no hull).
+
+    Returns:
+        (m, B + 1, B + 1, B + 1) float32, non-finite values read as far outside; indices
+        past the grid's end repeat its last sample.
+    """
+    ar = torch.arange(B + 1, device=axis.device)
+    idx = (blocks[:, :, None] * B + ar).clamp_max(len(axis) - 1)  # (m, 3, B+1)
+    c = axis[idx]  # (m, 3, B+1)
+    pts = torch.stack(torch.broadcast_tensors(c[:, 0, :, None, None], c[:, 1, None, :, None],
+                                              c[:, 2, None, None, :]), dim=-1)
+    pts = pts.reshape(-1, 3)  # (m * (B+1)^3, 3)
+    with torch.no_grad():
+        vals = torch.cat([sdf_fn(p).reshape(-1) for p in pts.split(chunk)])
+        if region is not None:
+            vals = torch.where(region.contains(pts).to(vals.device), vals.float(),
+                               float(_NONFINITE))
+    vals = vals.float().cpu().numpy().reshape(len(blocks), B + 1, B + 1, B + 1)
+    vals[~np.isfinite(vals)] = _NONFINITE
+    return vals
+
+
 def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
                           level: float = 0.0, device: str | torch.device = "cpu",
                           chunk: int = 2**18, block: int = 8, lipschitz: float = 1.5,
-                          dilate: int = 1, hull: VisualHull | None = None
+                          dilate: int = 1, hull: VisualHull | None = None,
+                          progress: bool | None = None
                           ) -> tuple[np.ndarray, np.ndarray, ExtractionStats]:
     """Marching cubes of an SDF on ``linspace(-bound, bound, R)^3``, evaluated near the surface.
 
@@ -325,6 +392,8 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
         block: cells per block edge.
         lipschitz, dilate: the block rule (see `keep_blocks`).
         hull: optional visual hull: evaluate and export only inside it.
+        progress: a tqdm bar on stderr (blocks done) when it takes over a second (None:
+            inside `progress_bars` only).
 
     Returns:
         vertices (V, 3) float64 (normalised frame), faces (F, 3) int64, `ExtractionStats`.
@@ -356,24 +425,13 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
 
     per_block = (B + 1) ** 3
     m = max(1, chunk // per_block)  # blocks per batch
-    ar = torch.arange(B + 1, device=device)
     verts, faces, on_face = [], [], []
     n_surface = 0
+    bar = _bar(progress, len(kept), f"marching cubes {R}^3", "block")
     for s in range(0, len(kept), m):
         bi = torch.as_tensor(kept[s:s + m], device=device)  # (m, 3)
-        idx = (bi[:, :, None] * B + ar).clamp_max(cells)  # (m, 3, B+1)
-        c = axis[idx]  # (m, 3, B+1)
-        pts = torch.stack(torch.broadcast_tensors(c[:, 0, :, None, None], c[:, 1, None, :, None],
-                                                  c[:, 2, None, None, :]), dim=-1)
-        pts = pts.reshape(-1, 3)  # (m * (B+1)^3, 3)
-        with torch.no_grad():
-            vals = torch.cat([sdf_fn(p).reshape(-1) for p in pts.split(chunk)])
-            if region is not None:
-                vals = torch.where(region.contains(pts).to(vals.device), vals.float(),
-                                   float(_NONFINITE))
-        evals += len(pts)
-        vals = vals.float().cpu().numpy().reshape(len(bi), B + 1, B + 1, B + 1)
-        vals[~np.isfinite(vals)] = _NONFINITE
+        vals = _block_values(sdf_fn, axis, bi, B, chunk, region)
+        evals += vals.size
         # clamped samples repeat the last layer, so min/max over the padded block are exact
         g = vals.reshape(len(bi), -1)
         cross = (g.max(1) > level) & (g.min(1) <= level)  # (m,)
@@ -383,6 +441,8 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
             faces.append(f)
             on_face.append(face)
         n_surface += int(cross.sum())
+        bar.update(len(bi))
+    bar.close()
     if not verts:
         raise NeusL0Error(f"no surface: the SDF does not cross {level} inside the cube "
                           f"[-{bound}, {bound}]^3 (sparse extraction at {R}^3)")
@@ -460,6 +520,9 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
         hull: optional `neus_l0.bounds.hull.VisualHull` (normalised frame): nothing is exported
             outside ``hull.for_grid(step)`` (see `sparse_marching_cubes`; the dense path
             reads samples outside it as far outside too).
+
+    Inside `progress_bars`, the SDF's evaluation shows a tqdm bar on stderr when it takes
+    over a second.
 
     Returns:
         the mesh in world units; ``mesh.metadata["extraction"]`` holds the

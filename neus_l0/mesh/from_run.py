@@ -16,7 +16,7 @@ import trimesh
 from neus_l0.bounds.hull import load_run_hull
 from neus_l0.config.schema import Config
 from neus_l0.fields.model import NeuSModel
-from neus_l0.mesh.extract import extract_mesh
+from neus_l0.mesh.extract import extract_mesh, progress_bars
 from neus_l0.run.checkpoints import load_trained_model
 
 
@@ -44,7 +44,7 @@ class RunMesh:
 
 def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.device = "cpu",
                   checkpoint: str | Path | None = None, clean: bool = True,
-                  method: str = "auto") -> RunMesh:
+                  method: str = "auto", progress: bool = False) -> RunMesh:
     """Marching cubes of a run's SDF at `resolution`^3, restricted to the run's visual hull
     (``RUN/hull.pt``, when it has one).
 
@@ -55,12 +55,14 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         checkpoint: a specific checkpoint file; default the newest that loads.
         clean: keep the largest component (see `extract_mesh`).
         method: ``auto``, ``dense`` or ``sparse`` (see `extract_mesh`).
+        progress: a tqdm bar on stderr while the SDF is evaluated (`progress_bars`).
 
     Raises:
         NeusL0Error: no usable checkpoint, or no surface in the field.
     """
     model, cfg, info = load_trained_model(run_dir, device, checkpoint)
-    mesh = extract_mesh(model, np.asarray(info["scale_mat"]), resolution=resolution,
-                        clean=clean, device=device, method=method,
-                        hull=load_run_hull(run_dir, device))
+    with progress_bars(progress):
+        mesh = extract_mesh(model, np.asarray(info["scale_mat"]), resolution=resolution,
+                            clean=clean, device=device, method=method,
+                            hull=load_run_hull(run_dir, device))
     return RunMesh(mesh, model, cfg, info)
