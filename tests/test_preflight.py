@@ -116,3 +116,26 @@ def test_resume_on_another_scene_is_refused(small, sphere_scene, tmp_path):
         train(b, load_config("demo", small + ["train.iters=8"]), run, resume=True,
               progress=False)
     train(a, load_config("demo", small + ["train.iters=8"]), run, resume=True, progress=False)
+
+
+def test_a_huge_scale_mat_loads_with_warnings_not_a_traceback(scene_copy, capsys):
+    from neus_l0.cli import main
+
+    path = scene_copy / "cameras_sphere.npz"
+    data = dict(np.load(path))
+    for k in [k for k in data if k.startswith("scale_mat_")]:
+        m = data[k].copy()
+        m[:3, :4] *= 1e30
+        data[k] = m
+    np.savez(path, **data)
+    assert main(["inspect", str(scene_copy)]) == 0
+    out = capsys.readouterr().out
+    assert "cameras inside the unit sphere" in out
+
+
+def test_a_one_view_scene_warns(scene_copy, capsys):
+    for folder in ("image", "mask"):
+        for p in sorted((scene_copy / folder).glob("*.png"))[1:]:
+            p.unlink()
+    assert load_scene(scene_copy).n_views == 1
+    assert "one view only" in capsys.readouterr().err

@@ -42,6 +42,7 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             (rotation R^T, centre t[:3] / t[3] from ``cv2.decomposeProjectionMatrix``).
     """
     P = np.asarray(P, dtype=np.float64)[:3, :4]
+    P = P / np.abs(P).max()  # a projection is defined up to scale: keep its numbers near 1
     K, R, t = cv2.decomposeProjectionMatrix(P)[:3]
     K = K / K[2, 2]
     c2w = np.eye(4)

@@ -425,6 +425,9 @@ def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
     H, W = first[0].shape[:2]
     if H < s or W < s:
         raise SceneError(f"{image_paths[0]}: {W}x{H} is too small for downscale {s}")
+    if n == 1:
+        print(f"neus-l0: warning: {root}: one view only; NeuS needs many views around the "
+              "object (a few dozen) to recover its shape", file=sys.stderr, flush=True)
     images, alpha_masks = read_views(image_paths, (H, W), s)
     if mask_paths is not None:
         masks, empty = read_masks(mask_paths, (H, W), s)
@@ -438,9 +441,14 @@ def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
     Ks, c2ws = [], []
     S = downscale_matrix(s)
     for i in range(n):
-        K, c2w = decompose_projection(P[i])
+        v = pairing.indices[i]
+        try:
+            K, c2w = decompose_projection(P[i])
+        except cv2.error:
+            raise SceneError(f"{cam_path}: world_mat_{v} @ scale_mat_{v} is not a camera "
+                             "projection (OpenCV cannot split it into K, R, t)") from None
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(c2w))):
-            raise SceneError(f"{cam_path}: view {i} decomposes into non-finite K/pose")
+            raise SceneError(f"{cam_path}: view {v} decomposes into non-finite K/pose")
         Ks.append(S @ K)
         c2ws.append(c2w)
     dev = torch.device(device)
