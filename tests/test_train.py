@@ -282,6 +282,23 @@ def test_demo_quick(small, monkeypatch, tmp_path):
     assert m["iterations"] == 3 and m["mesh"]["faces"] > 0
 
 
+def test_demo_rerun_with_another_sampler_is_refused_not_mislabelled(small, monkeypatch,
+                                                                    tmp_path, capsys):
+    """Re-running the demo into the same --out resumes its run: with sampler=hvs instead of
+    the run's l0 it would train on and label an l0 run hvs (issue #27)."""
+    import neus_l0.commands.demo as demo
+    from neus_l0.cli import main
+
+    _tiny_demo(small, monkeypatch, tmp_path, 3)
+    capsys.readouterr()
+    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
+    rc = main(["demo", "--out", str(tmp_path / "demo"), "--quiet", "--resolution", "40",
+               *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
+               "train.iters=5", "train.val_every=0", "sampler=hvs"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "sampler.name" in err and "another --out" in err
+
+
 @pytest.mark.slow
 def test_demo_end_to_end_small(small, monkeypatch, tmp_path):
     m = _tiny_demo(small, monkeypatch, tmp_path, 300)

@@ -133,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
         cfg.train.max_seconds = max(30.0, left)
     scene = load_scene(scene_dir, downscale=cfg.data.downscale, device=device)
     resume = latest_checkpoint(run_dir) is not None
+    if resume:
+        _check_same_settings(run_dir, cfg)
     print(f"[2/4] training ({cfg.train.iters} iterations at most, "
           f"{cfg.train.max_seconds:.0f} s budget, sampler {cfg.sampler.name}, {threads} "
           f"thread{'s' if threads > 1 else ''}) into {run_dir}"
@@ -209,3 +211,24 @@ def draw_comparison(scene_dir, mesh, path, score: dict | None):
                  f"{score['completeness']:.2f}, overall {score['overall']:.2f} (world units)")
     return side_by_side(path, [("input view", img), ("ground truth", gt_shade),
                                ("reconstruction", rec_shade)], title)
+
+
+def _check_same_settings(run_dir, cfg) -> None:
+    """A re-run of the demo resumes its run: only with the settings it started with (beyond
+    length and logging), or it would label an `l0` run `hvs`.
+
+    Raises:
+        NeusL0Error: naming the keys that differ and the way out.
+    """
+    from neus_l0.config.load import load_config
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.run.resumes import changed_keys, guarded_keys, recorded_overrides
+
+    if not (run_dir / "config.yaml").is_file():
+        return
+    before = load_config(run_dir / "config.yaml", recorded_overrides(run_dir))
+    guarded = guarded_keys(changed_keys(before, cfg))
+    if guarded:
+        raise NeusL0Error(f"{run_dir}: holds a demo run trained with other settings "
+                          f"({', '.join(guarded)}); choose another --out, or delete {run_dir} "
+                          "to start that run over")
