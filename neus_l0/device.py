@@ -1,4 +1,4 @@
-"""The torch device a command runs on, and waiting for it."""
+"""The torch device a command runs on, how many CPU threads it uses, and waiting for it."""
 
 from __future__ import annotations
 
@@ -37,3 +37,38 @@ def synchronize(device: torch.device) -> None:
 
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def free_cpu_threads(requested: int | None = None) -> int:
+    """Torch CPU threads for a command: `requested` when given (>= 1), else the cores this
+    process may use less the machine's recent load (rounded), at least 1.
+
+    On a shared 2-core machine with another job running, torch's default two threads made
+    training 3.5x slower than one (the threads wait on each other while the other job holds
+    a core; docs/BENCHMARKS.md).
+    """
+    import os
+
+    if requested:
+        return max(1, int(requested))
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # pragma: no cover
+        load = 0.0
+    return max(1, min(cores, int(cores - load + 0.5)))
+
+
+def use_cpu_threads(requested: int | None, device: str) -> int | None:
+    """Set torch's CPU threads from `free_cpu_threads` when the command runs on the CPU and
+    return them (None on CUDA, where torch's default stays)."""
+    if device != "cpu":
+        return None
+    import torch
+
+    threads = free_cpu_threads(requested)
+    torch.set_num_threads(threads)
+    return threads

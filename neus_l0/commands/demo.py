@@ -38,28 +38,6 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     return p
 
 
-def demo_threads(requested: int | None = None) -> int:
-    """Torch CPU threads for the demo: `requested`, else the cores this process may use
-    less the machine's recent load (rounded), at least 1.
-
-    On a shared 2-core machine with other jobs running, one thread measured about twice as
-    fast as two (the threads wait on each other when the other jobs hold a core).
-    """
-    import os
-
-    if requested:
-        return max(1, requested)
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        cores = os.cpu_count() or 1
-    try:
-        load = os.getloadavg()[0]
-    except OSError:  # pragma: no cover
-        load = 0.0
-    return max(1, min(cores, int(cores - load + 0.5)))
-
-
 def score_demo_mesh(mesh_path, scene_dir) -> dict:
     """Chamfer report (`neus_l0.evaluation.score.score_mesh`) of the demo mesh, sampled
     about 150 points across the object so that scoring takes seconds."""
@@ -100,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.config.load import load_config
     from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
-    from neus_l0.device import pick_device
+    from neus_l0.device import free_cpu_threads, pick_device
     from neus_l0.mesh.extract import export_mesh
     from neus_l0.mesh.from_run import mesh_from_run
     from neus_l0.run.checkpoints import latest_checkpoint
@@ -111,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.conf, args.overrides)  # a bad config fails before any work
     device = pick_device(args.device)
     out.mkdir(parents=True, exist_ok=True)
-    threads = demo_threads(args.threads)
+    threads = free_cpu_threads(args.threads)
     torch.set_num_threads(threads)
     timings: dict[str, float] = {}
     t_all = time.monotonic()

@@ -32,6 +32,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="with --resume: allow overrides that change what is learnt (train.lr, "
                         "the sampler, the losses, ...); they are recorded in RUN/resumes.jsonl, "
                         "config.yaml stays the original")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads (default: train.threads, else the cores free when "
+                        "training starts, from the load average)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     accept_overrides(p)
     return p
@@ -39,9 +42,12 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 def run(args: argparse.Namespace) -> int:
 
+    import sys
+
     from neus_l0.commands._paths import check_output_dir
     from neus_l0.config.load import load_config
-    from neus_l0.device import pick_device
+    from neus_l0.device import pick_device, use_cpu_threads
+    from neus_l0.errors import NeusL0Error
     from neus_l0.formats.open import open_scene
     from neus_l0.train.loop import train
 
@@ -51,6 +57,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         cfg = load_config(args.conf, args.overrides)
     device = pick_device(args.device)
+    if args.threads is not None and args.threads < 1:
+        raise NeusL0Error(f"--threads {args.threads}: must be at least 1 (leave it out for the "
+                          "free cores)")
+    threads = use_cpu_threads(args.threads or cfg.train.threads, device)
+    if threads is not None:
+        how = "as asked" if (args.threads or cfg.train.threads) else "the free cores"
+        print(f"neus-l0 train: {threads} torch thread{'s' if threads > 1 else ''} ({how}; "
+              "--threads N to set)", file=sys.stderr, flush=True)
     scene = open_scene(args.data, downscale=cfg.data.downscale, device=device)
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
                    progress=not args.quiet)

@@ -126,6 +126,7 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "save_every"): at_least(0, "0: only at the end"),
     (TrainConfig, "keep_checkpoints"): at_least(0, "0: keep all"),
     (TrainConfig, "max_seconds"): at_least(0, "0: no time limit"),
+    (TrainConfig, "threads"): at_least(0, "0: the free cores"),
     (TrainConfig, "eikonal_fraction"): Range(0, 1, lo_open=True),
 }
 

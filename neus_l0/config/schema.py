@@ -372,6 +372,9 @@ class TrainConfig:
     CUDA graphs on CUDA where they work)."""
     tensorboard: bool = True
     """Write TensorBoard events into the run folder (`tensorboard --logdir RUN`)."""
+    threads: int = 0
+    """Torch CPU threads on the CPU (0: the cores free when the run starts, from the load
+    average; `neus-l0 train --threads N` overrides it). Ignored on CUDA."""
     eikonal_fraction: float = 1.0
     """Fraction of the samples (drawn at random each step) that the Eikonal term averages
     over; 1: all samples within radius 1.2 (NeuS)."""

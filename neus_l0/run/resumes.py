@@ -24,7 +24,7 @@ RESUMES_FILE = "resumes.jsonl"
 FREE_ON_RESUME = frozenset({
     "train.iters", "train.max_seconds", "train.log_every", "train.val_every",
     "train.val_downscale", "train.save_every", "train.keep_checkpoints", "train.tensorboard",
-    "train.compile", "render.chunk",
+    "train.compile", "train.threads", "render.chunk",
 })
 
 
