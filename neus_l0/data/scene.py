@@ -396,6 +396,29 @@ def masks_from_alpha(alpha_masks: list[np.ndarray | None], paths: list[Path]
     return masks, "alpha"
 
 
+def _split_projections(P: np.ndarray, indices: list[int], cam_path: Path,
+                       s: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Intrinsics (downscaled by `s`) and camera-to-world poses of the projections P (V, 3, 4)
+    of views `indices`.
+
+    Raises:
+        SceneError: a projection OpenCV cannot split, or one giving non-finite numbers.
+    """
+    Ks, c2ws = [], []
+    S = downscale_matrix(s)
+    for v, Pv in zip(indices, P, strict=True):
+        try:
+            K, c2w = decompose_projection(Pv)
+        except cv2.error:
+            raise SceneError(f"{cam_path}: world_mat_{v} @ scale_mat_{v} is not a camera "
+                             "projection (OpenCV cannot split it into K, R, t)") from None
+        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(c2w))):
+            raise SceneError(f"{cam_path}: view {v} decomposes into non-finite K/pose")
+        Ks.append(S @ K)
+        c2ws.append(c2w)
+    return Ks, c2ws
+
+
 def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device = "cpu") -> Scene:
     """Load a NeuS-format scene.
 
@@ -438,19 +461,7 @@ def load_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
     if masks is None:
         masks = np.ones((n, H // s, W // s), np.float32)
 
-    Ks, c2ws = [], []
-    S = downscale_matrix(s)
-    for i in range(n):
-        v = pairing.indices[i]
-        try:
-            K, c2w = decompose_projection(P[i])
-        except cv2.error:
-            raise SceneError(f"{cam_path}: world_mat_{v} @ scale_mat_{v} is not a camera "
-                             "projection (OpenCV cannot split it into K, R, t)") from None
-        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(c2w))):
-            raise SceneError(f"{cam_path}: view {v} decomposes into non-finite K/pose")
-        Ks.append(S @ K)
-        c2ws.append(c2w)
+    Ks, c2ws = _split_projections(P, pairing.indices, cam_path, s)
     dev = torch.device(device)
     return Scene(
         root=root,

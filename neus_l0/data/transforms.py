@@ -397,6 +397,65 @@ def undistort_map(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(K_new, dtype=np.float64), map_x, map_y
 
 
+def _read_view(path: Path, cam, mask_path: Path | None, shape: tuple[int, int],
+               maps: dict, json_name: str) -> tuple[np.ndarray, np.ndarray | None, bool,
+                                                    np.ndarray]:
+    """One frame: colour (composited over black where it has alpha), its mask (from
+    `mask_path`, else the alpha; None), whether it had alpha, and its pinhole K, all
+    undistorted when the camera is (`maps` caches the remaps by camera)."""
+    H, W = shape
+    rgb, alpha = read_image(path, shape)
+    if (cam.width, cam.height) != (W, H):
+        raise SceneError(f"{path}: size {W}x{H} differs from the camera's "
+                         f"{cam.width}x{cam.height} in {json_name}")
+    fg = None
+    if mask_path is not None:
+        m, _ = read_image(mask_path, shape)
+        fg = (m.max(axis=-1) > 0.5).astype(np.float32)
+    elif alpha is not None:
+        fg = (alpha > 0.5).astype(np.float32)
+    if alpha is not None:
+        rgb = rgb * alpha[..., None]
+    K = cam.K
+    if cam.distorted:
+        if cam.key() not in maps:
+            maps[cam.key()] = undistort_map(cam)
+        K, mx, my = maps[cam.key()]
+        rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if fg is not None:
+            fg = cv2.remap(fg, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            fg = (fg > 0.5).astype(np.float32)
+    return rgb, fg, alpha is not None, K
+
+
+def _mask_source(ts: TransformsScene, have_alpha: list[bool], masks: np.ndarray) -> str:
+    """Where the masks came from: ``mask_path``, ``alpha`` or ``none``.
+
+    Raises:
+        SceneError: some images with alpha and some without.
+    """
+    if ts.mask_paths is not None:
+        return "mask_path"
+    if all(have_alpha):
+        return "none" if masks.min() >= 1.0 else "alpha"  # opaque alpha: no information
+    if any(have_alpha):
+        odd = ts.image_paths[have_alpha.index(not have_alpha[0])]
+        raise SceneError(f"{odd}: {'no' if have_alpha[0] else 'an'} alpha channel, unlike "
+                         f"{ts.image_paths[0].name}: give every image alpha or none")
+    return "none"
+
+
+def _undistortion_note(ts: TransformsScene, maps: dict) -> str:
+    """One line on what was undistorted and how the focal length changed."""
+    n = sum(cam.distorted for cam in ts.cameras)
+    cam = next(c for c in ts.cameras if c.distorted)
+    k1, k2, p1, p2, k3 = cam.dist
+    K_new = maps[cam.key()][0]
+    return (f"undistorted {n} of {ts.n_views} views ({cam.model} k1 {k1:.4g} k2 {k2:.4g} "
+            f"k3 {k3:.4g} p1 {p1:.4g} p2 {p2:.4g}) to pinhole cameras with OpenCV "
+            f"(valid pixels only: focal {cam.K[0, 0]:.1f} -> {K_new[0, 0]:.1f} px)")
+
+
 def load_views(ts: TransformsScene, downscale: int = 1, search: bool = True) -> Views:
     """Read, undistort and downscale the images and masks of a parsed scene.
 
@@ -428,28 +487,9 @@ def load_views(ts: TransformsScene, downscale: int = 1, search: bool = True) -> 
     have_alpha: list[bool] = []
     empty: list[Path] = []
     for i, (p, cam) in enumerate(zip(ts.image_paths, ts.cameras, strict=True)):
-        rgb, alpha = read_image(p, (H, W))
-        if (cam.width, cam.height) != (W, H):
-            raise SceneError(f"{p}: size {W}x{H} differs from the camera's "
-                             f"{cam.width}x{cam.height} in {ts.path.name}")
-        fg = None
-        if ts.mask_paths is not None:
-            m, _ = read_image(ts.mask_paths[i], (H, W))
-            fg = (m.max(axis=-1) > 0.5).astype(np.float32)
-        elif alpha is not None:
-            fg = (alpha > 0.5).astype(np.float32)
-        have_alpha.append(alpha is not None)
-        if alpha is not None:
-            rgb = rgb * alpha[..., None]
-        K = cam.K
-        if cam.distorted:
-            if cam.key() not in maps:
-                maps[cam.key()] = undistort_map(cam)
-            K, mx, my = maps[cam.key()]
-            rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            if fg is not None:
-                fg = cv2.remap(fg, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                fg = (fg > 0.5).astype(np.float32)
+        mask_path = ts.mask_paths[i] if ts.mask_paths is not None else None
+        rgb, fg, has_alpha, K = _read_view(p, cam, mask_path, (H, W), maps, ts.path.name)
+        have_alpha.append(has_alpha)
         images[i] = area_downscale(rgb, s) if s > 1 else rgb
         Ks_full[i] = K
         Ks[i] = downscale_matrix(s) @ K
@@ -459,29 +499,10 @@ def load_views(ts: TransformsScene, downscale: int = 1, search: bool = True) -> 
             masks[i] = area_downscale(fg, s) if s > 1 else fg
             if search_masks is not None:
                 search_masks[i] = area_downscale(fg, s_search) if s_search > 1 else fg
-    if ts.mask_paths is not None:
-        source = "mask_path"
-    elif all(have_alpha):
-        source = "alpha"
-        if masks.min() >= 1.0:
-            source = "none"  # opaque alpha everywhere: no information
-    elif any(have_alpha):
-        odd = ts.image_paths[have_alpha.index(not have_alpha[0])]
-        raise SceneError(f"{odd}: {'no' if have_alpha[0] else 'an'} alpha channel, unlike "
-                         f"{ts.image_paths[0].name}: give every image alpha or none")
-    else:
-        source = "none"
+    source = _mask_source(ts, have_alpha, masks)
     if source != "none":
         check_empty_masks(empty, V, ts.path)
-    undistorted = ""
-    if maps:
-        n = sum(cam.distorted for cam in ts.cameras)
-        cam = next(c for c in ts.cameras if c.distorted)
-        k1, k2, p1, p2, k3 = cam.dist
-        K_new = maps[cam.key()][0]
-        undistorted = (f"undistorted {n} of {V} views ({cam.model} k1 {k1:.4g} k2 {k2:.4g} "
-                       f"k3 {k3:.4g} p1 {p1:.4g} p2 {p2:.4g}) to pinhole cameras with OpenCV "
-                       f"(valid pixels only: focal {cam.K[0, 0]:.1f} -> {K_new[0, 0]:.1f} px)")
+    undistorted = _undistortion_note(ts, maps) if maps else ""
     has = source != "none"
     keep_search = has and search_masks is not None
     return Views(images=images, masks=masks if has else None, intrinsics=Ks,
