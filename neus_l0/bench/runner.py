@@ -184,6 +184,7 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int, pixels: in
     """
     import torch
 
+    from neus_l0.render.views import psnr
     from neus_l0.render.volume import render_image
     from neus_l0.train.schedule import cos_anneal_ratio
     from neus_l0.train.validation import validation_views
@@ -198,12 +199,9 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int, pixels: in
             o, d, rgb = validation_views(scene, v, ds)
             img = render_image(model, o, d, cfg.render, cfg.sampler,
                                cos_anneal_ratio(iteration, cfg.train.anneal_end))["color"]
-            err = ((img.clamp(0, 1) - rgb) ** 2).mean(-1)  # (h, w)
-            if scene.has_masks:
-                fg = scene.masks[v, ::ds, ::ds] > 0.5
-                err = err[fg] if bool(fg.any()) else err
-            mse = float(err.mean())
-            out.append(-10.0 * math.log10(max(mse, 1e-10)))
+            fg = (scene.masks[v, ::ds, ::ds] > 0.5).cpu().numpy() if scene.has_masks else None
+            out.append(psnr(img.clamp(0, 1).cpu().numpy(), rgb.cpu().numpy(),
+                            fg if fg is not None and fg.any() else None))
     if report is not None:
         report(step, len(views), len(views), "view")
     return out
