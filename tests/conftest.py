@@ -143,3 +143,13 @@ def sphere_model():
     """The factory ``sphere_model(s_init=0.6) -> NeuSModel``: an `AnalyticSphere` of radius
     0.5 at the origin, a small colour network and a single variance."""
     return _sphere_model
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _own_cache_folder(tmp_path_factory):
+    """The tests keep their own cache folder: the user's compile record (which
+    `train.compile: auto` reads) and inductor cache are neither read nor written."""
+    patch = pytest.MonkeyPatch()
+    patch.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("xdg_cache")))
+    yield
+    patch.undo()

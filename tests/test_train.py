@@ -1,5 +1,6 @@
 """Training: losses fall with every sampler, resume is exact, checkpoints are safe, CLI."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -62,7 +63,9 @@ def test_run_folder_layout(small, scene, tmp_path):
                                        "train.keep_checkpoints=1", "train.log_every=2"])
     run = tmp_path / "run"
     train(scene, cfg, run, progress=False)
-    assert load_config(str(run / "config.yaml")) == cfg
+    saved = load_config(str(run / "config.yaml"))
+    assert saved.train.compile is False  # `auto`, resolved: a 4-step run does not compile
+    assert saved == dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, compile=False))
     assert [p.name for p in list_checkpoints(run)] == ["ckpt_0000004.pt"]
     pngs = sorted((run / "validation").glob("*.png"))
     assert len(pngs) == 2

@@ -76,13 +76,10 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.atomic import atomic_write_json
     from neus_l0.commands._paths import check_output_dir
     from neus_l0.config.load import load_config
-    from neus_l0.data.scene import load_scene
     from neus_l0.data.synthetic import make_scene
     from neus_l0.device import free_cpu_threads, pick_device
     from neus_l0.mesh.extract import export_mesh
     from neus_l0.mesh.from_run import mesh_from_run
-    from neus_l0.run.checkpoints import latest_checkpoint
-    from neus_l0.train.loop import train
 
     check_numbers(args)
     out = check_output_dir(args.out, "--out")
@@ -109,15 +106,7 @@ def run(args: argparse.Namespace) -> int:
     if not any(o.startswith("train.max_seconds=") for o in args.overrides):
         left = DEMO_BUDGET_S - (time.monotonic() - t_all) - DEMO_RESERVE_S
         cfg.train.max_seconds = max(30.0, left)
-    scene = load_scene(scene_dir, downscale=cfg.data.downscale, device=device)
-    resume = latest_checkpoint(run_dir) is not None
-    if resume:
-        _check_same_settings(run_dir, cfg)
-    print(f"[2/4] training ({cfg.train.iters} iterations at most, "
-          f"{cfg.train.max_seconds:.0f} s budget, sampler {cfg.sampler.name}, {threads} "
-          f"thread{'s' if threads > 1 else ''}) into {run_dir}"
-          f"{' (resuming)' if resume else ''} ...", flush=True)
-    result = train(scene, cfg, run_dir, device=device, resume=resume, progress=not args.quiet)
+    result = _train_demo(args, cfg, scene_dir, run_dir, device, threads)
     timings["train_s"] = time.monotonic() - t0
     if result.signal:
         print(f"neus-l0 demo: stopped by {result.signal} at iteration {result.iteration}; "
@@ -162,6 +151,32 @@ def run(args: argparse.Namespace) -> int:
     print(f"metrics:    {out / 'metrics.json'}")
     print(f"picture:    {picture}")
     return 0
+
+
+def _train_demo(args: argparse.Namespace, cfg, scene_dir, run_dir, device: str, threads: int):
+    """Train (or resume) the demo's run: `train.compile: auto` resolved first, so that a
+    re-run is checked against the settings the run really used."""
+    import sys
+
+    from neus_l0.data.scene import load_scene
+    from neus_l0.run.checkpoints import checkpoint_iteration, latest_checkpoint
+    from neus_l0.train.compile_auto import resolve_compile
+    from neus_l0.train.loop import train
+
+    scene = load_scene(scene_dir, downscale=cfg.data.downscale, device=device)
+    newest = latest_checkpoint(run_dir)
+    resume = newest is not None
+    cfg, line = resolve_compile(cfg, device, checkpoint_iteration(newest) if resume else 0,
+                                run_dir)
+    if line:
+        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
+    if resume:
+        _check_same_settings(run_dir, cfg)
+    print(f"[2/4] training ({cfg.train.iters} iterations at most, "
+          f"{cfg.train.max_seconds:.0f} s budget, sampler {cfg.sampler.name}, {threads} "
+          f"thread{'s' if threads > 1 else ''}, {'compiled' if cfg.train.compile else 'eager'})"
+          f" into {run_dir}{' (resuming)' if resume else ''} ...", flush=True)
+    return train(scene, cfg, run_dir, device=device, resume=resume, progress=not args.quiet)
 
 
 def draw_comparison(scene_dir, mesh, path, score: dict | None):

@@ -75,6 +75,9 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
                 return _coerce(value, arg, key)
             except ConfigError as exc:
                 errors.append(str(exc))
+        if len(errors) > 1:  # e.g. `bool | Literal["auto"]`: name every accepted form
+            accepted = "; ".join(e.split(": ", 1)[-1] for e in errors)
+            raise ConfigError(f"{key}: bad value {value!r} ({accepted})")
         raise ConfigError(errors[0] if errors else f"{key}: bad value {value!r}")
     if origin is typing.Literal:
         choices = typing.get_args(tp)

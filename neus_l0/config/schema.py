@@ -366,10 +366,12 @@ class TrainConfig:
     amp: AmpMode = "off"
     """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
     scaler and fused Adam); ignored on the CPU."""
-    compile: bool = False
+    compile: bool | Literal["auto"] = "auto"
     """Compile the training step's render and loss with `torch.compile`
     (`neus_l0.train.compile`; needs `model.sdf.gradient` analytic or finite-difference;
-    CUDA graphs on CUDA where they work)."""
+    CUDA graphs on CUDA where they work). `auto`: compile when the run is long enough to
+    repay the compile time, taking `model.sdf.gradient=analytic` then
+    (`neus_l0.train.compile_auto`); the run's config.yaml records the choice."""
     tensorboard: bool = True
     """Write TensorBoard events into the run folder (`tensorboard --logdir RUN`)."""
     threads: int = 0

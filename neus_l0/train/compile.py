@@ -11,7 +11,8 @@ compiled, since AOT autograd does not support ``create_graph``).
 On CUDA the first choice is ``mode="reduce-overhead"`` (CUDA graphs); if compiling or the
 first step fails there, a one-line warning says so and the default mode is used; if that
 fails too, the step runs eagerly, again with one line. The compile time (the first step's)
-is reported once.
+is reported once, and noted in the user's compile record, which `train.compile: auto` reads
+(`neus_l0.train.compile_auto`); inductor's cache lives in the user's cache folder.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from collections.abc import Callable
 import torch
 
 from neus_l0.errors import ConfigError
+from neus_l0.train.compile_auto import note_compile, step_key, use_persistent_cache
 
 
 def _warn(msg: str) -> None:
@@ -33,11 +35,13 @@ class CompiledStep:
     """A compiled `render_and_loss` with its fallbacks (see the module docstring).
 
     Call it as `render_and_loss` is called. Attributes after the first call:
-    ``mode`` (the mode that works, or ``"eager"``) and ``compile_seconds``.
+    ``mode`` (the mode that works, or ``"eager"``) and ``compile_seconds``. With a `key`
+    (`neus_l0.train.compile_auto.step_key`), the compile time joins the user's record.
     """
 
-    def __init__(self, fn: Callable, device: torch.device) -> None:
+    def __init__(self, fn: Callable, device: torch.device, key: str | None = None) -> None:
         self.fn = fn
+        self.key = key
         self.modes = ["reduce-overhead", "default"] if device.type == "cuda" else ["default"]
         self.mode: str | None = None
         self.compiled: Callable | None = None
@@ -46,6 +50,7 @@ class CompiledStep:
     def __call__(self, *args, **kwargs):
         if self.compiled is not None:
             return self.compiled(*args, **kwargs)
+        use_persistent_cache()
         t0 = time.monotonic()
         for mode in self.modes:
             candidate = torch.compile(self.fn, mode=mode, fullgraph=True, dynamic=False)
@@ -60,6 +65,8 @@ class CompiledStep:
             self.compile_seconds = time.monotonic() - t0
             _warn(f"compiled the training step (mode={mode!r}) in "
                   f"{self.compile_seconds:.1f} s")
+            if self.key is not None:
+                note_compile(self.key, self.compile_seconds)
             return out
         self.compiled, self.mode = self.fn, "eager"
         _warn("train.compile: no mode compiled; the step runs eagerly")
@@ -67,14 +74,19 @@ class CompiledStep:
 
 
 def compiled_step(fn: Callable, cfg, device: torch.device) -> CompiledStep | None:
-    """`CompiledStep(fn)` when ``train.compile`` is on, else None.
+    """`CompiledStep(fn)` when ``train.compile`` is true, else None (resolve ``auto`` first:
+    `neus_l0.train.compile_auto.resolve_compile`).
 
     Raises:
-        ConfigError: ``train.compile`` with ``model.sdf.gradient=autograd``.
+        ConfigError: ``train.compile`` with ``model.sdf.gradient=autograd``, or still ``auto``.
     """
+    if cfg.train.compile == "auto":
+        raise ConfigError("train.compile=auto must be resolved before the run is built "
+                          "(neus_l0.train.compile_auto.resolve_compile)")
     if not cfg.train.compile:
         return None
     if cfg.model.sdf.gradient == "autograd":
         raise ConfigError("train.compile=true needs model.sdf.gradient=analytic or "
                           "finite-difference (autograd's double backward cannot be compiled)")
-    return CompiledStep(fn, torch.device(device))
+    device = torch.device(device)
+    return CompiledStep(fn, device, key=step_key(cfg, device.type))

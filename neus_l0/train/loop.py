@@ -65,6 +65,7 @@ from neus_l0.train.callbacks import (
     Validation,
 )
 from neus_l0.train.compile import compiled_step
+from neus_l0.train.compile_auto import resolve_compile
 from neus_l0.train.preflight import (
     check_same_scene,
     check_writable,
@@ -145,6 +146,10 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     _check_scene(scene, cfg)
     if resume:
         check_same_scene(run_dir, scene)
+    cfg, line = resolve_compile(cfg, device.type, checkpoint_iteration(ckpt) if ckpt else 0,
+                                run_dir)
+    if line:
+        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
     scene = scene.to(device)
     model = make_model(cfg, device)
     run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,

@@ -1,0 +1,205 @@
+"""`train.compile: auto`: compile the training step when the run is long enough to repay it.
+
+The compiled step (`neus_l0.train.compile`) is 2.3x faster than the eager one on the CPU
+(docs/BENCHMARKS.md), but compiling costs about 45 s on a 2-core CPU with an empty inductor
+cache and 5-10 s with a warm one. `auto` weighs the two:
+
+    saving  = min(iterations left x eager step, train.max_seconds) x (1 - compiled fraction)
+    compile = the expected compile time (warm when this step was compiled here before)
+
+and compiles when the saving is larger. The eager step time is a cost model (seconds per ray
+sample on the CPU, a launch-bound constant on CUDA); the compile time comes from a small
+record in the user's cache (`compile_record_path`), which every compile updates. Compiling
+needs an SDF gradient without double backward: `auto` takes ``model.sdf.gradient=analytic``
+(equal to autograd's to float rounding, `neus_l0.fields.sdf`) in place of ``autograd``.
+
+The inductor cache lives under the same cache folder (`use_persistent_cache`), so the second
+run of a config pays the warm time, also after /tmp is cleared.
+
+A run's ``config.yaml`` records the resolved choice (``train.compile: true`` or ``false``), so
+a resume computes what the run computed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from neus_l0.atomic import atomic_write_json
+from neus_l0.config.load import to_dict
+from neus_l0.config.schema import Config
+
+#: Seconds per ray sample of an eager CPU step on one thread: `demo` (128 rays x 64 samples)
+#: took 74.8 ms (docs/BENCHMARKS.md, "How fast is a training step").
+EAGER_CPU_S_PER_SAMPLE = 9.1e-6
+#: An eager CUDA step is launch-bound: 41 ms on an H100 before the op work (1313 launches).
+EAGER_CUDA_STEP_S = 0.04
+#: Compiled step time / eager step time: 0.43 measured on the CPU; CUDA not measured yet.
+COMPILED_FRACTION = {"cpu": 0.45, "cuda": 0.5}
+#: Expected compile seconds with an empty inductor cache (CPU: 45-50 s measured, 2 cores).
+COLD_COMPILE_S = {"cpu": 60.0, "cuda": 90.0}
+#: Expected compile seconds when this step compiled here before (CPU: 7 s measured).
+WARM_COMPILE_S = {"cpu": 12.0, "cuda": 20.0}
+#: Config sections that do not change the compiled graph (the optimiser and the schedule run
+#: outside it); everything else in the config is part of the record's key.
+_NOT_IN_GRAPH = ("iters", "lr", "lr_alpha", "warm_up", "seed", "log_every", "val_every",
+                 "val_downscale", "save_every", "keep_checkpoints", "max_seconds", "compile",
+                 "tensorboard", "threads")
+
+
+def cache_root() -> Path:
+    """neus-l0's cache folder: ``$XDG_CACHE_HOME/neus-l0``, else ``~/.cache/neus-l0``."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "neus-l0"
+
+
+def use_persistent_cache() -> Path:
+    """Point torch's inductor cache at ``cache_root()/inductor`` unless the user chose one
+    (``TORCHINDUCTOR_CACHE_DIR``); returns the folder in use."""
+    chosen = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+    if chosen:
+        return Path(chosen)
+    folder = cache_root() / "inductor"
+    os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(folder)
+    return folder
+
+
+def compile_record_path() -> Path:
+    """The record of measured compile times, one entry per step key."""
+    return cache_root() / "compile_times.json"
+
+
+def step_key(cfg: Config, device: str) -> str:
+    """A short hash of what shapes the compiled step: torch's version, the device type and
+    every config key but the schedule and logging (`_NOT_IN_GRAPH`)."""
+    d = to_dict(cfg)
+    d["train"] = {k: v for k, v in d["train"].items() if k not in _NOT_IN_GRAPH}
+    text = json.dumps([torch.__version__, device, d], sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def read_record(path: Path | None = None) -> dict:
+    """The compile record (``{key: {"compiles": n, "seconds": s}}``); empty when missing or
+    unreadable (it is a hint, never a reason to fail)."""
+    path = path or compile_record_path()
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def note_compile(key: str, seconds: float, path: Path | None = None) -> None:
+    """Add one measured compile to the record (silently skipped when the cache is not
+    writable)."""
+    path = path or compile_record_path()
+    record = read_record(path)
+    entry = record.get(key) if isinstance(record.get(key), dict) else {}
+    record[key] = {"compiles": int(entry.get("compiles", 0)) + 1, "seconds": round(seconds, 2)}
+    try:
+        atomic_write_json(path, record)
+    except OSError:
+        pass
+
+
+@dataclass(frozen=True)
+class CompileChoice:
+    """What `choose_compile` decided and from which estimates (seconds)."""
+
+    compile: bool
+    eager_step_s: float
+    saving_s: float
+    compile_s: float
+    warm: bool
+
+    def line(self, why: str = "") -> str:
+        """One line saying what was chosen and why."""
+        cache = "warm cache" if self.warm else "empty cache"
+        if self.compile:
+            return (f"train.compile=auto: compiling the step (it should save "
+                    f"~{self.saving_s:.0f} s of eager steps at "
+                    f"~{1000 * self.eager_step_s:.0f} ms; compiling costs "
+                    f"~{self.compile_s:.0f} s, {cache}){why}")
+        return (f"train.compile=auto: eager (compiling would cost ~{self.compile_s:.0f} s, "
+                f"{cache}, to save ~{self.saving_s:.0f} s){why}")
+
+
+def eager_step_seconds(cfg: Config, device: str) -> float:
+    """The cost model's eager step time: samples per step x seconds per sample on the CPU
+    (divided by the threads, which scale about 1.4x at 2), a constant on CUDA."""
+    if device == "cuda":
+        return EAGER_CUDA_STEP_S
+    r = cfg.render
+    samples = cfg.train.batch_size * (r.n_samples + r.n_importance + r.n_outside)
+    threads = max(1, torch.get_num_threads())
+    return EAGER_CPU_S_PER_SAMPLE * samples / threads ** 0.5
+
+
+def choose_compile(cfg: Config, device: str, start_iteration: int = 0,
+                   record: dict | None = None) -> CompileChoice:
+    """Whether `auto` compiles a run of `cfg` on `device` from `start_iteration` (pure but
+    for the thread count the cost model reads).
+
+    Args:
+        record: the compile record (`read_record`); its entry for `step_key` means a warm cache.
+    """
+    kind = "cuda" if device == "cuda" else "cpu"
+    step = eager_step_seconds(cfg, kind)
+    left = max(0, cfg.train.iters - start_iteration) * step
+    if cfg.train.max_seconds > 0:
+        left = min(left, cfg.train.max_seconds)
+    saving = left * (1.0 - COMPILED_FRACTION[kind])
+    entry = (record or {}).get(step_key(cfg, kind))
+    warm = isinstance(entry, dict) and entry.get("compiles", 0) > 0
+    expected = COLD_COMPILE_S[kind]
+    if warm:
+        expected = WARM_COMPILE_S[kind]
+        if entry.get("compiles", 0) > 1:  # its last compile was itself a warm one
+            expected = max(1.0, float(entry.get("seconds", expected)))
+    return CompileChoice(compile=saving > expected, eager_step_s=step, saving_s=saving,
+                         compile_s=expected, warm=warm)
+
+
+def _run_choice(run_dir: Path | None) -> bool | None:
+    """The compile choice a run folder's ``config.yaml`` recorded, if any."""
+    import yaml
+
+    if run_dir is None or not (run_dir / "config.yaml").is_file():
+        return None
+    try:
+        value = yaml.safe_load((run_dir / "config.yaml").read_text())["train"]["compile"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return None
+    return value if isinstance(value, bool) else None
+
+
+def resolve_compile(cfg: Config, device: str, start_iteration: int = 0,
+                    run_dir: Path | None = None) -> tuple[Config, str | None]:
+    """`cfg` with ``train.compile`` a bool, and the line to print (None when it was one).
+
+    ``auto`` keeps the choice a resumed run recorded in its ``config.yaml``; otherwise
+    `choose_compile` decides. Compiling with ``model.sdf.gradient=autograd`` switches the
+    gradient to ``analytic``.
+    """
+    if cfg.train.compile != "auto":
+        return cfg, None
+    recorded = _run_choice(run_dir) if start_iteration > 0 else None
+    if recorded is not None:
+        on, line = recorded, (f"train.compile=auto: {'compiled' if recorded else 'eager'}, as "
+                              "the run started")
+    else:
+        choice = choose_compile(cfg, device, start_iteration, read_record())
+        on, line = choice.compile, choice.line()
+    train = dataclasses.replace(cfg.train, compile=on)
+    model = cfg.model
+    if on and model.sdf.gradient == "autograd":
+        model = dataclasses.replace(model, sdf=dataclasses.replace(model.sdf,
+                                                                   gradient="analytic"))
+        line += "; model.sdf.gradient=analytic (autograd's double backward cannot compile)"
+    return dataclasses.replace(cfg, train=train, model=model), line

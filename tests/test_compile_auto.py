@@ -1,0 +1,146 @@
+"""`train.compile: auto` (issue #24 item 1): compile when the run repays it, remember compile
+times in the user's cache, keep inductor's cache there, and record the choice in the run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from neus_l0.commands.demo import _check_same_settings
+from neus_l0.config.load import dump_config, load_config
+from neus_l0.errors import ConfigError
+from neus_l0.train import compile_auto as ca
+from neus_l0.train.compile import compiled_step
+from neus_l0.train.loop import train
+
+
+@pytest.fixture
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_cache_root_honours_xdg_and_falls_back_to_home(monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert ca.cache_root() == tmp_path / "xdg" / "neus-l0"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert ca.cache_root() == tmp_path / "home" / ".cache" / "neus-l0"
+
+
+def test_inductor_cache_goes_to_ours_unless_the_user_chose_one(monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    assert ca.use_persistent_cache() == tmp_path / "neus-l0" / "inductor"
+    import os
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "neus-l0" / "inductor")
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
+    assert ca.use_persistent_cache() == tmp_path / "mine"
+
+
+def test_saving_and_choice_follow_the_closed_form(one_thread):
+    cfg = load_config("demo", ["train.iters=3000", "train.max_seconds=0"])
+    step = ca.EAGER_CPU_S_PER_SAMPLE * 128 * 64
+    choice = ca.choose_compile(cfg, "cpu")
+    assert choice.eager_step_s == pytest.approx(step)
+    assert choice.saving_s == pytest.approx(3000 * step * (1 - ca.COMPILED_FRACTION["cpu"]))
+    assert choice.compile_s == ca.COLD_COMPILE_S["cpu"] and not choice.warm
+    assert choice.compile is (choice.saving_s > choice.compile_s)
+    # a resume late in the run has fewer steps to repay the compile with
+    late = ca.choose_compile(cfg, "cpu", start_iteration=2900)
+    assert late.saving_s == pytest.approx(100 * step * (1 - ca.COMPILED_FRACTION["cpu"]))
+    assert not late.compile
+
+
+@pytest.mark.parametrize("iters,seconds,expect", [
+    (50, 0, False),         # a test-sized run: eager
+    (3000, 0, True),        # the demo's length: compile
+    (100000, 20, False),    # long, but a 20-s time cap leaves nothing to repay 60 s with
+    (100000, 200, True),    # the demo's time cap
+])
+def test_auto_compiles_only_long_runs(one_thread, iters, seconds, expect):
+    cfg = load_config("demo", [f"train.iters={iters}", f"train.max_seconds={seconds}"])
+    assert ca.choose_compile(cfg, "cpu").compile is expect
+
+
+def test_a_warm_cache_makes_shorter_runs_worth_compiling(one_thread, tmp_path):
+    cfg = load_config("demo", ["train.iters=1000", "train.max_seconds=0"])
+    assert not ca.choose_compile(cfg, "cpu", record={}).compile  # ~20 s saved < 60 s cold
+    path = tmp_path / "record.json"
+    ca.note_compile(ca.step_key(cfg, "cpu"), 47.0, path)
+    once = ca.choose_compile(cfg, "cpu", record=ca.read_record(path))
+    assert once.warm and once.compile_s == ca.WARM_COMPILE_S["cpu"] and once.compile
+    ca.note_compile(ca.step_key(cfg, "cpu"), 6.5, path)  # the second compile was a warm one
+    twice = ca.choose_compile(cfg, "cpu", record=ca.read_record(path))
+    assert twice.compile_s == 6.5
+    assert json.loads(path.read_text()) == {ca.step_key(cfg, "cpu"): {"compiles": 2,
+                                                                     "seconds": 6.5}}
+
+
+def test_the_record_is_a_hint_never_a_failure(tmp_path):
+    bad = tmp_path / "record.json"
+    bad.write_text("{not json")
+    assert ca.read_record(bad) == {}
+    bad.write_text("[1, 2]")
+    assert ca.read_record(bad) == {}
+    assert ca.read_record(tmp_path / "missing.json") == {}
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    ca.note_compile("k", 1.0, blocked / "record.json")  # a folder that cannot exist: no error
+
+
+def test_the_step_key_ignores_the_schedule_but_not_the_graph():
+    base = load_config("demo")
+    key = ca.step_key(base, "cpu")
+    for same in (["train.iters=7"], ["train.lr=1e-3"], ["train.seed=4"],
+                 ["train.max_seconds=9"], ["train.compile=true"], ["train.log_every=3"]):
+        assert ca.step_key(load_config("demo", same), "cpu") == key, same
+    for other in (["train.batch_size=64"], ["render.n_samples=16"], ["sampler=hvs"],
+                  ["model.sdf.hidden=32"]):
+        assert ca.step_key(load_config("demo", other), "cpu") != key, other
+    assert ca.step_key(base, "cuda") != key
+
+
+def test_resolving_auto_takes_the_analytic_gradient_only_when_compiling(one_thread):
+    long = load_config("demo", ["train.iters=100000", "train.max_seconds=0",
+                                "model.sdf.gradient=autograd"])
+    cfg, line = ca.resolve_compile(long, "cpu")
+    assert cfg.train.compile is True and cfg.model.sdf.gradient == "analytic"
+    assert line.startswith("train.compile=auto: compiling") and "analytic" in line
+    short = load_config("demo", ["train.iters=20", "model.sdf.gradient=autograd"])
+    cfg, line = ca.resolve_compile(short, "cpu")
+    assert cfg.train.compile is False and cfg.model.sdf.gradient == "autograd"
+    assert line.startswith("train.compile=auto: eager")
+    fixed = load_config("demo", ["train.compile=false", "train.iters=100000"])
+    assert ca.resolve_compile(fixed, "cpu") == (fixed, None)
+
+
+def test_a_resume_keeps_the_choice_its_run_made(one_thread, tmp_path):
+    ran = load_config("demo", ["train.compile=true", "model.sdf.gradient=analytic"])
+    (tmp_path / "config.yaml").write_text(dump_config(ran))
+    # auto would say eager this late, but the run compiled: the resume does too
+    cfg, line = ca.resolve_compile(load_config("demo"), "cpu", start_iteration=2990,
+                                   run_dir=tmp_path)
+    assert cfg.train.compile is True and cfg.model.sdf.gradient == "analytic"
+    assert "as the run started" in line
+    _check_same_settings(tmp_path, cfg)  # a demo re-run is not refused for it
+
+
+def test_compiled_step_refuses_an_unresolved_auto():
+    with pytest.raises(ConfigError, match="resolve"):
+        compiled_step(lambda: None, load_config("demo"), torch.device("cpu"))
+
+
+def test_a_short_run_says_eager_and_records_the_choice(small, sphere_scene, tmp_path, capsys):
+    cfg = load_config("demo", small + ["train.iters=4", "train.log_every=2", "train.val_every=0"])
+    assert cfg.train.compile == "auto"
+    train(sphere_scene(tmp_path / "scene"), cfg, tmp_path / "run", progress=False)
+    assert "train.compile=auto: eager" in capsys.readouterr().err
+    saved = yaml.safe_load(Path(tmp_path / "run" / "config.yaml").read_text())
+    assert saved["train"]["compile"] is False
