@@ -5,6 +5,8 @@ complete file, never a truncated one, even if the process is killed mid-write. T
 the mode a plain ``open`` would give it (0644 under umask 022), not the temporary file's
 private 0600. A writer killed mid-write leaves its temporary file (``.NAME.XXXX.tmp.SUFFIX``)
 behind; `remove_orphans` clears them where one writer owns the folder (a locked run folder).
+A write that fails (no permission, a file in the way, a full disk, also inside torch's own
+writer: `atomic_torch_save`) raises `neus_l0.errors.OutputError`, one line naming the file.
 """
 
 from __future__ import annotations
@@ -17,6 +19,12 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from neus_l0.errors import OutputError
+
+#: Parts of the RuntimeError `torch.save` raises when it cannot write its file (a full disk
+#: gives "unexpected pos ... vs ..." or "PytorchStreamWriter failed writing file").
+TORCH_WRITE_FAILURES = ("PytorchStreamWriter failed", "unexpected pos", "file write failed")
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
@@ -24,21 +32,30 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
     The caller writes the complete file to the yielded path. On an exception the temporary
     file is removed and `path` is left untouched.
+
+    Raises:
+        OutputError: an `OSError` while making the folder or the temporary file, writing,
+            or renaming (naming `path` and why).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix,
-                               dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path = None
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix,
+                                   dir=path.parent)
+        os.close(fd)
+        tmp_path = Path(tmp)
         yield tmp_path
         with open(tmp_path, "rb+") as f:
             os.fsync(f.fileno())
         os.chmod(tmp_path, 0o666 & ~_umask())
         os.replace(tmp_path, path)
+    except OutputError:
+        raise
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot write ({exc.strerror or exc})") from None
     finally:
-        if tmp_path.exists():
+        if tmp_path is not None and tmp_path.exists():
             tmp_path.unlink()
 
 
@@ -72,6 +89,22 @@ def atomic_write(path: str | os.PathLike, writer: Callable[[Path], Any]) -> Path
     with atomic_path(path) as tmp:
         writer(tmp)
     return Path(path)
+
+
+def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
+    """`torch.save(obj)` into `path` atomically; torch's own write failures
+    (`TORCH_WRITE_FAILURES`) raise `OutputError` like any other write's."""
+    import torch
+
+    def write(tmp: Path) -> None:
+        try:
+            torch.save(obj, tmp)
+        except RuntimeError as exc:
+            if not any(s in str(exc) for s in TORCH_WRITE_FAILURES):
+                raise
+            raise OSError(f"torch: {str(exc).splitlines()[0]}; is the disk full?") from None
+
+    return atomic_write(path, write)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

@@ -16,3 +16,8 @@ class SceneError(NeusL0Error):
 
 class ConfigError(NeusL0Error):
     """A configuration file or override is invalid."""
+
+
+class OutputError(NeusL0Error, OSError):
+    """An output cannot be written (no permission, a file in the way, a full disk). Also an
+    `OSError`, so that code catching those still does."""

@@ -25,9 +25,9 @@ sample-distance hook's time is not counted (`neus_l0.train.loop.train`). A run t
 
 One sweep at a time: the sweep folder is locked (`neus_l0.run.lock.RunLock`, ``DIR/.lock``)
 for the whole sweep, so a second sweep into it is refused before it touches a run. SIGTERM
-or SIGINT stops the sweep: the running run is told (`neus_l0.bench.runner.ForwardSignals`),
-checkpoints, is recorded as interrupted, and no further run starts
-(`SweepOutcome.signal`).
+or SIGINT stops the sweep: the running run is told (`neus_l0.bench.runner.ForwardSignals`;
+under Ray its task is cancelled, `neus_l0.bench.ray_backend`), checkpoints, is recorded as
+interrupted, and no further run starts (`SweepOutcome.signal`).
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ from neus_l0.bench.results import collect_rows, run_name, write_results
 from neus_l0.bench.runner import BENCH_OVERRIDES, ForwardSignals, RunSpec, run_in_subprocess
 from neus_l0.errors import NeusL0Error
 from neus_l0.run.lock import RunLock
+from neus_l0.train.signals import StopOnSignal
 
 #: Settings that must match between invocations on the same sweep folder.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
@@ -277,8 +278,7 @@ def run_sweep(spec: SweepSpec, *, progress: bool = True,
     Returns:
         a `SweepOutcome`. A failing run is recorded (status failed, error) and the sweep
         goes on; runs whose status.json says done are skipped. SIGTERM / SIGINT stop the
-        sweep after the running run has checkpointed (local backend; see the module
-        docstring).
+        sweep (see the module docstring).
 
     Raises:
         NeusL0Error: bad scenes or config, a sweep folder made with other settings, or one
@@ -316,12 +316,12 @@ def run_sweep(spec: SweepSpec, *, progress: bool = True,
 
 def _execute(specs: list[RunSpec], out_dir: Path, spec: SweepSpec, n_skipped: int,
              progress: bool, on_row: Callable[[dict], None] | None
-             ) -> tuple[list[str], ForwardSignals | None]:
+             ) -> tuple[list[str], StopOnSignal | None]:
     """Run `specs` on the sweep's backend, with the progress bars.
 
     Returns:
-        the names that ran, and the signal watcher of the local backend (None for Ray):
-        after a SIGTERM / SIGINT, passed on to the running run, no further run starts.
+        the names that ran, and the signal watcher: after a SIGTERM / SIGINT, passed on to
+        the running run (local) or cancelling the Ray tasks, no further run starts.
     """
     from tqdm import tqdm
 
@@ -357,7 +357,8 @@ def _execute(specs: list[RunSpec], out_dir: Path, spec: SweepSpec, n_skipped: in
             from neus_l0.bench.ray_backend import run_with_ray
 
             bar.set_description(f"bench ({len(specs)} Ray tasks)")
-            run_with_ray(specs, finished, timeout=spec.timeout)
+            with StopOnSignal() as stop:
+                run_with_ray(specs, finished, timeout=spec.timeout, stop=stop)
     finally:
         step_bar.close()
         bar.close()

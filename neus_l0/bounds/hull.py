@@ -54,6 +54,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +62,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from neus_l0.atomic import atomic_path
+from neus_l0.atomic import atomic_torch_save
 from neus_l0.bounds.grid import (
     cell_axis,
     cell_centres,
@@ -185,10 +186,7 @@ class VisualHull:
 
     def save(self, path: str | Path) -> Path:
         """Write the hull atomically (torch.save of `state_dict`)."""
-        path = Path(path)
-        with atomic_path(path) as tmp:
-            torch.save(self.state_dict(), tmp)
-        return path
+        return atomic_torch_save(path, self.state_dict())
 
     @classmethod
     def load(cls, path: str | Path, device: str | torch.device = "cpu") -> VisualHull:
@@ -701,7 +699,8 @@ def hull_from_scene(scene, resolution: int = DEFAULT_RESOLUTION,
 
 
 def hull_for_run(scene, path: str | Path, resolution: int = DEFAULT_RESOLUTION,
-                 margin_px: float = DEFAULT_MARGIN_PX) -> VisualHull:
+                 margin_px: float = DEFAULT_MARGIN_PX, reuse: bool = True,
+                 check: Callable[[VisualHull], None] | None = None) -> VisualHull:
     """The run's hull: loaded from `path` when it exists (resume and `mesh` then use the
     hull the run started with), else carved from `scene` and saved there atomically.
 
@@ -709,14 +708,23 @@ def hull_for_run(scene, path: str | Path, resolution: int = DEFAULT_RESOLUTION,
         scene: the `Scene` (the hull goes to its device).
         path: the run's hull file (e.g. ``RUN/hull.pt``).
         resolution, margin_px: used only when carving.
+        reuse: load an existing `path` (False: carve anew and replace it; a run that starts
+            afresh must not take the hull of an earlier start, maybe on another scene).
+        check: called with the hull before it is used; it raises to refuse it. A carved
+            hull is saved only once it passes, so a refused scene leaves no hull.pt behind.
 
     Returns:
         The `VisualHull`; its ``report.warnings`` are the lines to show the user.
     """
     path = Path(path)
-    if path.is_file():
-        return VisualHull.load(path, scene.device)
+    if reuse and path.is_file():
+        hull = VisualHull.load(path, scene.device)
+        if check is not None:
+            check(hull)
+        return hull
     hull = hull_from_scene(scene, resolution, margin_px)
+    if check is not None:
+        check(hull)
     hull.save(path)
     return hull
 

@@ -17,6 +17,7 @@ from neus_l0.bounds.points import PointBound
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
 from neus_l0.errors import SceneError
+from neus_l0.run.checkpoints import latest_checkpoint
 
 #: The share of the unit sphere's outer shell a visual hull may fill before the object counts
 #: as cut by the sphere. Measured with the default 128^3 hull. Objects that fit: the demo
@@ -39,8 +40,10 @@ def static_bounds(scene: Scene, cfg: Config,
     """The run's static bounds: its visual hull, or without one the SfM point box, or none.
 
     The hull exists only when the scene has masks and `render.hull.enabled` (views without
-    masks carve nothing): carved at the first start and saved as ``RUN/hull.pt``; a resume
-    loads that file. Each warning of the carving (a suspicious mask, named) is one line on
+    masks carve nothing): carved at the first start and saved as ``RUN/hull.pt`` once it
+    passes `check_fit` (a refused scene leaves none); a resume loads that file, and a start
+    without a checkpoint carves it again (the file is then an earlier start's, maybe of
+    another scene). Each warning of the carving (a suspicious mask, named) is one line on
     stderr. Without a hull, `render.point_bound.enabled` and a ``sparse_points.npz`` in the
     scene folder (`neus-l0 colmap`) give the points' box (`neus_l0.bounds.points`); else ().
     """
@@ -53,8 +56,10 @@ def static_bounds(scene: Scene, cfg: Config,
         print(f"neus-l0: {box.describe()}", file=sys.stderr, flush=True)
         return (box,)
     run_dir.mkdir(parents=True, exist_ok=True)
-    hull = hull_for_run(scene, run_dir / "hull.pt", h.resolution, h.margin_px)
-    check_fit(hull, scene)
+    # a run without a checkpoint starts afresh: a hull.pt there is an earlier start's
+    hull = hull_for_run(scene, run_dir / "hull.pt", h.resolution, h.margin_px,
+                        reuse=latest_checkpoint(run_dir) is not None,
+                        check=lambda carved: check_fit(carved, scene))
     for line in (hull.report.warnings if hull.report is not None else []):
         print(f"neus-l0: visual hull: {line}", file=sys.stderr, flush=True)
     return (hull,)
@@ -70,21 +75,34 @@ def shell_fraction(hull: VisualHull) -> float:
     return float((hull.occupancy & shell).sum()) / max(int(shell.sum()), 1)
 
 
+def cameras_inside(scene: Scene) -> list[int]:
+    """The views whose camera centre lies inside the unit sphere (the normalised frame)."""
+    return (scene.c2w[:, :3, 3].norm(dim=-1) <= 1.0).nonzero().flatten().tolist()
+
+
 def check_fit(hull: VisualHull, scene: Scene) -> None:
     """Refuse a scene whose object the unit sphere cuts (`CUT_SHELL`), before training.
 
     Raises:
-        SceneError: naming the scene, how much of the shell the hull fills, and the fix.
+        SceneError: naming the scene, how much of the shell the hull fills, and the fix (or,
+            when cameras are inside the sphere, so that it is far too large, naming them).
     """
     carving = sum(s == "ok" for s in hull.report.status) if hull.report else 0
     if carving < CUT_MIN_VIEWS or hull.margin_px > CUT_MAX_MARGIN * min(scene.height,
                                                                         scene.width):
         return
     frac = shell_fraction(hull)
-    if frac > CUT_SHELL:
+    if frac <= CUT_SHELL:
+        return
+    inside = cameras_inside(scene)
+    if inside:  # then the hull fills the shell because the sphere is far too large
         raise SceneError(
-            f"{scene.root}: the object does not fit its unit sphere: the masks' visual hull "
-            f"fills {frac:.0%} of the sphere's outer shell (an object inside fills a few %), so "
-            f"training would clip the mesh; enlarge the sphere (the scale of every scale_mat_i), "
-            "e.g. by 1.5x, and check with `neus-l0 inspect --hull`, or set "
-            "render.hull.enabled=false to train anyway")
+            f"{scene.root}: the cameras of views {inside} are inside the unit sphere, which "
+            "must hold the object and leave the cameras outside: the scale_mat_i are of "
+            "another scale than the world_mat_i; check them with `neus-l0 inspect`")
+    raise SceneError(
+        f"{scene.root}: the object does not fit its unit sphere: the masks' visual hull "
+        f"fills {frac:.0%} of the sphere's outer shell (an object inside fills a few %), so "
+        f"training would clip the mesh; enlarge the sphere (the scale of every scale_mat_i), "
+        "e.g. by 1.5x, and check with `neus-l0 inspect --hull`, or set "
+        "render.hull.enabled=false to train anyway")

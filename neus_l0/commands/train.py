@@ -69,9 +69,9 @@ def run(args: argparse.Namespace) -> int:
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
                    progress=not args.quiet)
     if result.signal:
-        print(f"stopped by {result.signal} at iteration {result.iteration}; checkpoint "
-              f"{result.checkpoint} written; continue with: neus-l0 train {args.data} "
-              f"--out {run_dir} --resume")
+        print(f"neus-l0 train: stopped by {result.signal} at iteration {result.iteration}; "
+              f"checkpoint {result.checkpoint} written; continue with: neus-l0 train "
+              f"{args.data} --out {run_dir} --resume", file=sys.stderr)
         return result.exit_code
     state = "stopped at the time budget" if result.stopped_early else "done"
     print(f"{state}: {result.iteration} iterations in {result.seconds:.0f} s; "

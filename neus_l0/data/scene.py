@@ -187,12 +187,12 @@ def read_image(path: Path, shape: tuple[int, int] | None = None
     Raises:
         SceneError: unreadable, or not of `shape`.
     """
+    cut = truncated(path)  # before decoding: libpng / libjpeg would print to stderr
+    if cut:
+        raise SceneError(f"{path}: {cut} (a partial copy or download?)")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise SceneError(f"{path}: unreadable image")
-    cut = truncated(path)
-    if cut:
-        raise SceneError(f"{path}: {cut} (a partial copy or download?)")
     if shape is not None and img.shape[:2] != shape:
         raise SceneError(f"{path}: size {img.shape[1]}x{img.shape[0]} differs from "
                          f"{shape[1]}x{shape[0]} of the first image")
@@ -210,18 +210,30 @@ def read_image(path: Path, shape: tuple[int, int] | None = None
     return rgb, alpha
 
 
+#: The first bytes of a PNG and of a JPEG file.
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+JPEG_SIGNATURE = b"\xff\xd8"
+
+
 def truncated(path: Path) -> str | None:
-    """Why an image file is cut short, or None: OpenCV decodes a truncated PNG or JPEG
-    without an error, filling the missing rows, so the file's end is checked."""
-    suffix = Path(path).suffix.lower()
-    with open(path, "rb") as f:
-        f.seek(0, 2)
-        size = f.tell()
-        f.seek(max(0, size - 64))
-        tail = f.read()
-    if suffix == ".png" and b"IEND" not in tail[-12:]:
+    """Why an image file is cut short, or None: OpenCV decodes a truncated JPEG (and some
+    truncated PNGs) without an error, filling the missing rows, and its decoders print to
+    stderr, so the end of a file that starts as a PNG or a JPEG is checked before decoding.
+    Files of other kinds (or not images at all, or not readable) are left to the decoder:
+    None."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+            f.seek(0, 2)
+            size = f.tell()
+            f.seek(max(0, size - 64))
+            tail = f.read()
+    except OSError:
+        return None
+    if head.startswith(PNG_SIGNATURE) and b"IEND" not in tail[-12:]:
         return "truncated PNG (no IEND chunk at its end)"
-    if suffix in (".jpg", ".jpeg") and b"\xff\xd9" not in tail.rstrip(b"\x00 \r\n")[-2:]:
+    if (head.startswith(JPEG_SIGNATURE)
+            and b"\xff\xd9" not in tail.rstrip(b"\x00 \r\n")[-2:]):
         return "truncated JPEG (no end-of-image marker)"
     return None
 

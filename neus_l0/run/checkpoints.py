@@ -26,7 +26,7 @@ from typing import Any
 
 import torch
 
-from neus_l0.atomic import atomic_write
+from neus_l0.atomic import atomic_torch_save
 from neus_l0.config.load import config_from_dict
 from neus_l0.config.schema import Config
 from neus_l0.errors import NeusL0Error
@@ -97,13 +97,14 @@ def save_checkpoint(path: str | Path, state: dict, keep: int = 0) -> Path:
 
     Raises:
         NeusL0Error: when the model or optimiser state is not finite (nothing is written).
+        OutputError: when it cannot be written (a full disk, ...; nothing is written).
     """
     path = Path(path)
     bad = _non_finite_key({"model": state.get("model"), "optimizer": state.get("optimizer")})
     if bad:
         raise NeusL0Error(f"{path}: not saved: the training state has NaN/inf in '{bad}' "
                           "(training diverged; try a lower train.lr)")
-    atomic_write(path, lambda tmp: torch.save(state, tmp))
+    atomic_torch_save(path, state)
     if keep > 0:
         for old in list_checkpoints(path.parent.parent)[:-keep]:
             if old != path:

@@ -16,6 +16,13 @@ weights are divided by their maximum (the distribution does not depend on their 
 sampled uniformly over its range. Outputs are sorted, inside the input range, finite, and
 carry no gradient.
 
+Positions (``t``, ``bins``, ``z``) must be finite and sorted along the last axis. The
+samplers check that (`check_positions`: one pass and one host synchronisation) and raise a
+``ValueError`` naming the rays that are not, unless called with ``check=False``: NeuS's
+up-sampling (`neus_l0.sampling.upsample`) builds sorted, finite positions itself and passes
+``check=False``, so that the training step has no host synchronisation. Unchecked, unsorted
+positions give meaningless samples and NaN positions NaN samples.
+
 The L0-Sampler (Li & Zhang, CVPR 2024) interpolates the point weights (after ``maxblur``)
 on each interval ``[t_i, t_{i+1}]`` of length ``D``, with ``a = w_i``, ``b = w_{i+1}``,
 ``L = ln(b/a)`` and ``s`` in [0, 1]:
@@ -68,8 +75,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
-    "KINDS", "maxblur", "neus_section_inverse_cdf", "l0_section_pieces", "piece_inverse_cdf",
-    "piece_mass",
+    "KINDS", "check_positions", "maxblur", "neus_section_inverse_cdf", "l0_section_pieces",
+    "piece_inverse_cdf", "piece_mass",
     "quantiles", "sample_l0", "sample_l0_sections", "sample_neus_sections", "sample_pdf",
     "sanitize_weights",
 ]
@@ -91,6 +98,33 @@ def sanitize_weights(weights: Tensor) -> Tensor:
         (..., N) finite, non-negative weights of the same dtype.
     """
     return torch.nan_to_num(weights, nan=0.0, posinf=0.0, neginf=0.0).clamp_min_(0.0)
+
+
+def check_positions(t: Tensor, where: str = "t") -> None:
+    """Refuse positions that are not finite and sorted (non-decreasing) along the last axis.
+
+    One pass over `t` and one host synchronisation when they are fine; the samplers call it
+    unless given ``check=False`` (see the module notes).
+
+    Args:
+        t: (..., N) positions along each ray.
+        where: the caller and argument, for the message (``"sample_l0: t"``).
+
+    Raises:
+        ValueError: naming how many rays of the flattened batch are bad, and the first one.
+    """
+    rows = _rows(t.detach())
+    finite = torch.isfinite(rows).all(dim=-1)  # (R,)
+    ordered = (rows[:, 1:] >= rows[:, :-1]).all(dim=-1)  # (R,); NaN compares False
+    if bool((finite & ordered).all()):
+        return
+    problems = []
+    for bad, what in ((~finite, "hold NaN or inf"), (finite & ~ordered, "are not sorted")):
+        n = int(bad.sum())
+        if n:
+            problems.append(f"{n} {what} (first: ray {int(bad.nonzero()[0, 0])})")
+    raise ValueError(f"{where} must be finite and sorted along its last axis; of its "
+                     f"{rows.shape[0]} rays (the batch flattened), {' and '.join(problems)}")
 
 
 def maxblur(weights: Tensor, pad: float = 0.01) -> Tensor:
@@ -237,7 +271,7 @@ def _finish(samples: Tensor, t: Tensor) -> Tensor:
 @torch.no_grad()
 def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
                generator: torch.Generator | None = None, u: Tensor | None = None,
-               lengths: Tensor | None = None) -> Tensor:
+               lengths: Tensor | None = None, check: bool = True) -> Tensor:
     """NeRF's hierarchical volume sampling: inverse transform of a piecewise-constant PDF.
 
     Args:
@@ -249,15 +283,22 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
         u: (R, n) quantiles drawn beforehand (see `sample_l0`).
         lengths: (..., N) the bins' lengths ``bins[1:] - bins[:-1]`` when the caller has
             them (NeuS's up-sampling does), else None.
+        check: refuse bins that are not finite and sorted (`check_positions`; False: the
+            caller guarantees them, and no host synchronisation happens).
 
     Returns:
         (..., n) sorted samples inside [bins_0, bins_N], without gradient.
+
+    Raises:
+        ValueError: shapes that disagree, no bin, or (with `check`) bad bins.
     """
     if bins.shape[-1] != weights.shape[-1] + 1:
         raise ValueError(f"bins (..., N+1) and weights (..., N) disagree: "
                          f"{tuple(bins.shape)} vs {tuple(weights.shape)}")
     if weights.shape[-1] < 1:
         raise ValueError("sample_pdf needs at least one bin")
+    if check:
+        check_positions(bins, "sample_pdf: bins")
     batch = bins.shape[:-1]
     bins = _rows(bins)  # (R, N+1); no gradient here, so no detach
     w = _prepare_weights(_rows(weights), bins.dtype, False, 0.0)
@@ -276,7 +317,8 @@ def sample_pdf(bins: Tensor, weights: Tensor, n_samples: int, det: bool = True,
 @torch.no_grad()
 def sample_l0(t: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
               det: bool = True, blur: bool = True, pad: float = 0.01,
-              generator: torch.Generator | None = None, u: Tensor | None = None) -> Tensor:
+              generator: torch.Generator | None = None, u: Tensor | None = None,
+              check: bool = True) -> Tensor:
     """The L0-Sampler: inverse transform of piecewise exponential / inverse / linear weights.
 
     Args:
@@ -291,9 +333,15 @@ def sample_l0(t: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
         generator: random source for ``det=False``.
         u: (R, n) the quantiles (`quantiles`) drawn beforehand, R the rays of the flattened
             batch (None: drawn here from `det` and `generator`).
+        check: refuse positions that are not finite and sorted (`check_positions`; False:
+            the caller guarantees them, and no host synchronisation happens).
 
     Returns:
         (..., n) sorted samples inside [t_0, t_{N-1}], without gradient.
+
+    Raises:
+        ValueError: an unknown kind, shapes that disagree, N < 2, or (with `check`) bad
+            positions.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown L0 kind {kind!r}; expected one of {KINDS}")
@@ -302,6 +350,8 @@ def sample_l0(t: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
                          f"{tuple(t.shape)} vs {tuple(weights.shape)}")
     if t.shape[-1] < 2:
         raise ValueError("sample_l0 needs at least two positions per ray (N >= 2)")
+    if check:
+        check_positions(t, "sample_l0: t")
     batch = t.shape[:-1]
     t, weights = _rows(t), _rows(weights)  # (R, N); no gradient here, so no detach
     w = _prepare_weights(weights, t.dtype, blur, pad)  # (R, N)
@@ -574,7 +624,8 @@ def neus_section_inverse_cdf(x: Tensor, y: Tensor, q: Tensor) -> Tensor:
 @torch.no_grad()
 def sample_neus_sections(z: Tensor, weights: Tensor, prev_sdf: Tensor, next_sdf: Tensor,
                          inv_s: float | Tensor, n_samples: int, det: bool = True,
-                         generator: torch.Generator | None = None) -> Tensor:
+                         generator: torch.Generator | None = None,
+                         check: bool = True) -> Tensor:
     """Inverse transform of NeuS's own opacity: section masses, then the exact CDF inside.
 
     Args:
@@ -587,9 +638,14 @@ def sample_neus_sections(z: Tensor, weights: Tensor, prev_sdf: Tensor, next_sdf:
         n_samples: n, samples per ray.
         det: midpoint quantiles ``(k + 0.5) / n`` instead of stratified random ones.
         generator: random source for ``det=False``.
+        check: refuse section ends that are not finite and sorted (`check_positions`;
+            False: the caller guarantees them, and no host synchronisation happens).
 
     Returns:
         (..., n) sorted samples inside [z_0, z_{N-1}], without gradient.
+
+    Raises:
+        ValueError: N < 2, shapes that disagree, or (with `check`) bad section ends.
     """
     N = z.shape[-1]
     if N < 2:
@@ -598,6 +654,8 @@ def sample_neus_sections(z: Tensor, weights: Tensor, prev_sdf: Tensor, next_sdf:
         if v.shape != (*z.shape[:-1], N - 1):
             raise ValueError(f"z (..., N) and {name} (..., N-1) disagree: "
                              f"{tuple(z.shape)} vs {tuple(v.shape)}")
+    if check:
+        check_positions(z, "sample_neus_sections: z")
     batch = z.shape[:-1]
     dtype = z.dtype
     z = z.detach().reshape(-1, N)  # (R, N)
@@ -652,7 +710,7 @@ def _boundary_values(rho: Tensor, d: Tensor, kind: str) -> Tensor:
 @torch.no_grad()
 def sample_l0_sections(z: Tensor, weights: Tensor, n_samples: int, kind: str = "exp",
                        det: bool = True, generator: torch.Generator | None = None,
-                       u: Tensor | None = None) -> Tensor:
+                       u: Tensor | None = None, check: bool = True) -> Tensor:
     """The L0 interpolant inside NeuS's sections, each section keeping its own mass.
 
     The L0-Sampler's nodes are the section midpoints ``m_j`` with the section densities
@@ -674,9 +732,15 @@ def sample_l0_sections(z: Tensor, weights: Tensor, n_samples: int, kind: str = "
         generator: random source for ``det=False``.
         u: (R, n) the quantiles drawn beforehand (`quantiles`), R the rays of the flattened
             batch (None: drawn here from `det` and `generator`).
+        check: refuse section ends that are not finite and sorted (`check_positions`;
+            False: the caller guarantees them, and no host synchronisation happens).
 
     Returns:
         (..., n) sorted samples inside [z_0, z_{N-1}], without gradient.
+
+    Raises:
+        ValueError: an unknown kind, N < 2, shapes that disagree, or (with `check`) bad
+            section ends.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown L0 kind {kind!r}; expected one of {KINDS}")
@@ -686,6 +750,8 @@ def sample_l0_sections(z: Tensor, weights: Tensor, n_samples: int, kind: str = "
     if weights.shape != (*z.shape[:-1], N - 1):
         raise ValueError(f"z (..., N) and weights (..., N-1) disagree: "
                          f"{tuple(z.shape)} vs {tuple(weights.shape)}")
+    if check:
+        check_positions(z, "sample_l0_sections: z")
     batch = z.shape[:-1]
     z, weights = _rows(z.detach()), _rows(weights)  # (R, N), (R, M)
     w = _prepare_weights(weights, z.dtype, False, 0.0)  # (R, M)

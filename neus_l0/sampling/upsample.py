@@ -19,6 +19,10 @@ above `neus_l0.sampling.kernels`: it knows no networks and no configs beyond
 `SamplerConfig`'s fields.
 
 Shapes: B rays, N samples per ray (sorted), n samples drawn per round.
+
+The draws call the kernels with ``check=False``: the sections' ends are sorted and finite by
+construction (sorted coarse positions, each round merged by one sort), and checking them
+would put a host synchronisation into the training step.
 """
 
 from __future__ import annotations
@@ -221,7 +225,7 @@ class HVSSampler:
     def draw(self, sections: Sections, n_samples: int) -> Tensor:
         """Deterministic `sample_pdf` on the sections; (B, n_samples)."""
         return sample_pdf(sections.z, sections.weights, n_samples, det=True,
-                          u=sections.quantiles(n_samples), lengths=sections.dist)
+                          u=sections.quantiles(n_samples), lengths=sections.dist, check=False)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,7 +239,7 @@ class NeuSExactSampler:
         """Deterministic `sample_neus_sections` at the round's sharpness; (B, n_samples)."""
         prev_sdf, next_sdf = sections.estimates()
         return sample_neus_sections(sections.z, sections.weights, prev_sdf, next_sdf,
-                                    sections.inv_s, n_samples, det=True)
+                                    sections.inv_s, n_samples, det=True, check=False)
 
 
 class L0Sampler:
@@ -311,10 +315,10 @@ class L0Sampler:
         sections); (B, n_samples)."""
         if self.masses == "sections":
             return sample_l0_sections(sections.z, sections.weights, n_samples, self.kind,
-                                      u=sections.quantiles(n_samples))
+                                      u=sections.quantiles(n_samples), check=False)
         t, w = self.point_weights(sections)
         return self._draw(t, w, n_samples, kind=self.kind, det=True, blur=self.blur,
-                          pad=self.pad, u=sections.quantiles(n_samples))
+                          pad=self.pad, u=sections.quantiles(n_samples), check=False)
 
 
 def _l0(cfg: SamplerConfig) -> L0Sampler:

@@ -242,7 +242,8 @@ def stop_diverged(run: RunState, watchdog: Watchdog, reason: str) -> NeusL0Error
             p.rename(p.with_name(p.name + ".diverged"))
     lr = run.cfg.train.lr
     where = (f"the last good checkpoint is {kept.name}; resume from it with a lower "
-             f"learning rate (--resume train.lr={lr / 10:g})" if kept is not None else
+             f"learning rate (--resume --change-config train.lr={lr / 10:g})"
+             if kept is not None else
              f"no good checkpoint was written; start again with a lower train.lr "
              f"(e.g. {lr / 10:g})")
     return NeusL0Error(f"{run.run_dir}: training diverged at iteration {run.iteration} "
