@@ -11,9 +11,11 @@ positions with a sharp surface peak.
 ``sample_pdf`` gets the N-1 section weights (bins = the N positions), ``sample_l0`` the N
 point weights, so both draw from the same coarse information. Prints the minimum and median
 time per call and the ratio of minima to ``sample_pdf``, measured side by side, interleaved,
-in one process. With ``--compile`` the exp draw and ``sample_pdf`` also run through
-`torch.compile` (``dynamic=True``, ``det=True``, as `render.compile_sampler` uses it; compiled
-in the warm-up), beside their eager ``det=True`` calls.
+in one process. Every draw is timed with ``check=False``, as the up-sampling calls it (the
+positions' check, one pass and a host synchronisation, is left out). With ``--compile`` the
+exp draw and ``sample_pdf`` also run through `torch.compile` (``dynamic=True``,
+``det=True``, as `render.compile_sampler` uses it; compiled in the warm-up), beside their
+eager ``det=True`` calls.
 """
 
 from __future__ import annotations
@@ -87,23 +89,23 @@ def bench(device: str, args: argparse.Namespace) -> list[tuple[str, float, float
     sdf = 1.2 - t  # a plane's SDF for neus-exact's estimates (its cost does not depend on them)
     n = args.samples
     fns = {
-        "sample_pdf (HVS)": lambda: sample_pdf(t, w_sec, n, det=False),
-        "sample_l0 exp": lambda: sample_l0(t, w, n, kind="exp", det=False),
-        "sample_l0 inverse": lambda: sample_l0(t, w, n, kind="inverse", det=False),
-        "sample_l0 linear": lambda: sample_l0(t, w, n, kind="linear", det=False),
-        "l0 sections (exp)": lambda: sample_l0_sections(t, w_sec, n, det=False),
+        "sample_pdf (HVS)": lambda: sample_pdf(t, w_sec, n, det=False, check=False),
+        "sample_l0 exp": lambda: sample_l0(t, w, n, kind="exp", det=False, check=False),
+        "sample_l0 inverse": lambda: sample_l0(t, w, n, kind="inverse", det=False, check=False),
+        "sample_l0 linear": lambda: sample_l0(t, w, n, kind="linear", det=False, check=False),
+        "l0 sections (exp)": lambda: sample_l0_sections(t, w_sec, n, det=False, check=False),
         "neus-exact": lambda: sample_neus_sections(t, w_sec, sdf[:, :-1], sdf[:, 1:], 256.0,
-                                                   n, det=False),
+                                                   n, det=False, check=False),
     }
     if args.compile:
         c_l0 = torch.compile(sample_l0, dynamic=True)
         c_pdf = torch.compile(sample_pdf, dynamic=True)
         # det=True, as the up-sampling draws (dynamo cannot trace torch.rand with symbolic
         # shapes); the eager det=True draws are timed beside them.
-        fns["pdf det"] = lambda: sample_pdf(t, w_sec, n, det=True)
-        fns["compiled pdf det"] = lambda: c_pdf(t, w_sec, n, det=True)
-        fns["l0 exp det"] = lambda: sample_l0(t, w, n, kind="exp", det=True)
-        fns["compiled l0 exp det"] = lambda: c_l0(t, w, n, kind="exp", det=True)
+        fns["pdf det"] = lambda: sample_pdf(t, w_sec, n, det=True, check=False)
+        fns["compiled pdf det"] = lambda: c_pdf(t, w_sec, n, det=True, check=False)
+        fns["l0 exp det"] = lambda: sample_l0(t, w, n, kind="exp", det=True, check=False)
+        fns["compiled l0 exp det"] = lambda: c_l0(t, w, n, kind="exp", det=True, check=False)
     if args.count_ops:
         return [(k, float(count_ops(fn)), float("nan"), float("nan")) for k, fn in fns.items()]
     per: dict[str, list[float]] = {k: [] for k in fns}
