@@ -37,3 +37,30 @@ def test_train_says_how_many_threads_it_took(tiny_scene, tmp_path, small, capsys
                      "0"]) == 2
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("command", ["mesh", "render"])
+def test_mesh_and_render_take_the_free_cores_or_as_asked(tiny_scene, tmp_path, small,
+                                                         monkeypatch, capsys, command):
+    import torch
+
+    from neus_l0.cli import main
+
+    before = torch.get_num_threads()
+    run = tmp_path / "r"
+    try:
+        assert main(["train", str(tiny_scene), "--conf", "demo", "--out", str(run), "--quiet",
+                     "--threads", "1", *small, "train.iters=2"]) == 0
+        extra = (["--resolution", "16", "--out", str(tmp_path / "m.ply")] if command == "mesh"
+                 else ["--frames", "1", "--width", "8", "--height", "8", "--no-video",
+                       "--out", str(tmp_path / "v")])
+        assert main([command, str(run), "--quiet", "--threads", "2", *extra]) == 0
+        assert torch.get_num_threads() == 2
+        monkeypatch.setattr(os, "getloadavg", lambda: (9.0, 9.0, 9.0))  # a busy machine
+        assert main([command, str(run), "--quiet", *extra]) == 0
+        assert torch.get_num_threads() == 1
+        capsys.readouterr()
+        assert main([command, str(run), "--threads", "0", *extra]) == 2
+        assert "--threads 0: must be at least 1" in capsys.readouterr().err
+    finally:
+        torch.set_num_threads(before)

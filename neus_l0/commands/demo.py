@@ -54,15 +54,14 @@ def score_demo_mesh(mesh_path, scene_dir) -> dict:
 
 def check_numbers(args: argparse.Namespace) -> None:
     """Refuse an out-of-range number among the flags, naming the flag, before any work."""
+    from neus_l0.commands._threads import check_threads
     from neus_l0.errors import NeusL0Error
     from neus_l0.mesh.extract import SPARSE_ABOVE
     from neus_l0.mesh.memory import plan_extraction
 
     if args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
-    if args.threads is not None and args.threads < 1:
-        raise NeusL0Error(f"--threads {args.threads}: must be at least 1 (leave it out for "
-                          "the free cores)")
+    check_threads(args.threads)
     plan_extraction("sparse" if args.resolution > SPARSE_ABOVE else "dense", args.resolution)
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from neus_l0.commands._threads import add_threads_flag
+
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
     p = sub.add_parser(name, help="extract a mesh from a trained run",
@@ -45,6 +47,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--checkpoint", default=None,
                    help="a specific checkpoint (default the newest that loads)")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"])
+    add_threads_flag(p)
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar (by default one on stderr while the SDF is evaluated, "
                         "when that takes over a second)")
@@ -89,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from neus_l0.commands._threads import use_threads
     from neus_l0.data.cameras import to_normalised
     from neus_l0.device import pick_device
     from neus_l0.mesh.cleanup import clean_up
@@ -97,6 +101,7 @@ def run(args: argparse.Namespace) -> int:
 
     out, method, options = _check(args)
     device = pick_device(args.device)
+    use_threads(args.threads, device)
     t0 = time.monotonic()
     made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
                          progress=not args.quiet)

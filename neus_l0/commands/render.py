@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from neus_l0.commands._threads import add_threads_flag
+
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
     p = sub.add_parser(name, help="render novel views of a trained run (frames, videos, PSNR)",
@@ -40,6 +42,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--checkpoint", default=None,
                    help="a specific checkpoint (default the newest that loads)")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"])
+    add_threads_flag(p)
     p.add_argument("--fps", type=float, default=24.0, help="video frame rate (24)")
     p.add_argument("--no-video", dest="video", action="store_false",
                    help="write the PNG frames only")
@@ -72,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from neus_l0.commands._paths import check_output_dir
+    from neus_l0.commands._threads import use_threads
     from neus_l0.device import pick_device
     from neus_l0.render.from_run import RenderOptions, render_run
 
@@ -82,8 +86,9 @@ def run(args: argparse.Namespace) -> int:
         checkpoint=args.checkpoint)
     options.check()
     out = check_output_dir(args.out, "--out") if args.out else None
-    result = render_run(args.run, out, options, pick_device(args.device),
-                        progress=not args.quiet)
+    device = pick_device(args.device)
+    use_threads(args.threads, device)
+    result = render_run(args.run, out, options, device, progress=not args.quiet)
     H, W = result.size
     print(f"neus-l0 render: {result.frames} frames of {W}x{H} in {result.seconds:.1f} s "
           f"({result.seconds / max(result.frames, 1):.2f} s/frame) -> {result.out}",

@@ -45,9 +45,9 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from neus_l0.commands._paths import check_output_dir
+    from neus_l0.commands._threads import check_threads
     from neus_l0.config.load import load_config
     from neus_l0.device import pick_device, use_cpu_threads
-    from neus_l0.errors import NeusL0Error
     from neus_l0.formats.open import open_scene
     from neus_l0.train.loop import train
 
@@ -57,9 +57,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         cfg = load_config(args.conf, args.overrides)
     device = pick_device(args.device)
-    if args.threads is not None and args.threads < 1:
-        raise NeusL0Error(f"--threads {args.threads}: must be at least 1 (leave it out for the "
-                          "free cores)")
+    check_threads(args.threads)
     threads = use_cpu_threads(args.threads or cfg.train.threads, device)
     if threads is not None:
         how = "as asked" if (args.threads or cfg.train.threads) else "the free cores"
