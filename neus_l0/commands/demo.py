@@ -6,15 +6,16 @@ import argparse
 
 from neus_l0.commands._overrides import accept_overrides
 
-#: Size of the demo scene (views, width, height): small enough for a 2-core CPU budget.
-DEMO_SCENE = {"views": 24, "width": 100, "height": 75}
+#: Size of the demo scene (views, width, height): a step costs the same at any image size, and
+#: 200x150 scored 15-20 % lower Chamfer than 100x75 at equal iterations (docs/BENCHMARKS.md).
+DEMO_SCENE = {"views": 24, "width": 200, "height": 150}
 #: Marching-cubes resolution of the demo mesh.
 DEMO_RESOLUTION = 96
 #: Wall-clock target of the whole demo (seconds); training gets what is left of it after the
 #: scene, minus `DEMO_RESERVE_S` for meshing, scoring and drawing (unless
 #: `train.max_seconds=...` is given on the command line).
-DEMO_BUDGET_S = 280.0
-DEMO_RESERVE_S = 75.0
+DEMO_BUDGET_S = 148.0
+DEMO_RESERVE_S = 14.0
 #: Training config of the demo (`confs/demo.yaml`).
 DEMO_CONF = "demo"
 
