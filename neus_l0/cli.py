@@ -23,6 +23,7 @@ import threading
 
 from neus_l0 import __version__
 from neus_l0.errors import NeusL0Error
+from neus_l0.train.cache_folder import use_persistent_cache
 
 #: Subcommands in the order `--help` lists them: (name, module under neus_l0.commands).
 COMMANDS: list[tuple[str, str]] = [
@@ -79,6 +80,7 @@ def _sigterm_raises():
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `neus-l0` console script."""
+    use_persistent_cache()  # before torch imports torch._dynamo, which fixes inductor's cache
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "_run", None) is None:

@@ -13,6 +13,7 @@ import yaml
 from neus_l0.commands.demo import _check_same_settings
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.errors import ConfigError
+from neus_l0.train import cache_folder as cf
 from neus_l0.train import compile_auto as ca
 from neus_l0.train.compile import compiled_step
 from neus_l0.train.loop import train
@@ -28,20 +29,20 @@ def one_thread():
 
 def test_cache_root_honours_xdg_and_falls_back_to_home(monkeypatch, tmp_path):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    assert ca.cache_root() == tmp_path / "xdg" / "neus-l0"
+    assert cf.cache_root() == tmp_path / "xdg" / "neus-l0"
     monkeypatch.delenv("XDG_CACHE_HOME")
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
-    assert ca.cache_root() == tmp_path / "home" / ".cache" / "neus-l0"
+    assert cf.cache_root() == tmp_path / "home" / ".cache" / "neus-l0"
 
 
 def test_inductor_cache_goes_to_ours_unless_the_user_chose_one(monkeypatch, tmp_path):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
-    assert ca.use_persistent_cache() == tmp_path / "neus-l0" / "inductor"
+    assert cf.use_persistent_cache() == tmp_path / "neus-l0" / "inductor"
     import os
     assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(tmp_path / "neus-l0" / "inductor")
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path / "mine"))
-    assert ca.use_persistent_cache() == tmp_path / "mine"
+    assert cf.use_persistent_cache() == tmp_path / "mine"
 
 
 def test_saving_and_choice_follow_the_closed_form(one_thread):
@@ -148,3 +149,24 @@ def test_a_short_run_says_eager_and_records_the_choice(small, sphere_scene, tmp_
     assert "train.compile=auto: eager" in capsys.readouterr().err
     saved = yaml.safe_load(Path(tmp_path / "run" / "config.yaml").read_text())
     assert saved["train"]["compile"] is False
+
+
+def test_the_cli_points_inductor_at_our_cache_before_torch_fixes_it(tmp_path):
+    """torch sets TORCHINDUCTOR_CACHE_DIR to its /tmp default when torch._dynamo is imported
+    (an optimiser does): the CLI must choose ours first, and a user's choice stands."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import os, torch; from neus_l0.cli import main; main(['config', 'show']); "
+            "torch.optim.Adam([torch.zeros(1, requires_grad=True)]); "
+            "print(os.environ['TORCHINDUCTOR_CACHE_DIR'])")
+    env = {k: v for k, v in os.environ.items() if k != "TORCHINDUCTOR_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.splitlines()[-1]
+    assert out == str(tmp_path / "neus-l0" / "inductor")
+    env["TORCHINDUCTOR_CACHE_DIR"] = str(tmp_path / "mine")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.splitlines()[-1]
+    assert out == str(tmp_path / "mine")

@@ -24,7 +24,8 @@ from collections.abc import Callable
 import torch
 
 from neus_l0.errors import ConfigError
-from neus_l0.train.compile_auto import note_compile, step_key, use_persistent_cache
+from neus_l0.train.cache_folder import use_persistent_cache
+from neus_l0.train.compile_auto import note_compile, step_key
 
 
 def _warn(msg: str) -> None:

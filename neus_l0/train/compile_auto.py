@@ -13,8 +13,8 @@ record in the user's cache (`compile_record_path`), which every compile updates.
 needs an SDF gradient without double backward: `auto` takes ``model.sdf.gradient=analytic``
 (equal to autograd's to float rounding, `neus_l0.fields.sdf`) in place of ``autograd``.
 
-The inductor cache lives under the same cache folder (`use_persistent_cache`), so the second
-run of a config pays the warm time, also after /tmp is cleared.
+The inductor cache lives under the same cache folder (`neus_l0.train.cache_folder`), so the
+second run of a config pays the warm time, also after /tmp is cleared.
 
 A run's ``config.yaml`` records the resolved choice (``train.compile: true`` or ``false``), so
 a resume computes what the run computed.
@@ -25,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,6 +33,7 @@ import torch
 from neus_l0.atomic import atomic_write_json
 from neus_l0.config.load import to_dict
 from neus_l0.config.schema import Config
+from neus_l0.train.cache_folder import compile_record_path
 
 #: Seconds per ray sample of an eager CPU step on one thread: `demo` (128 rays x 64 samples)
 #: took 74.8 ms (docs/BENCHMARKS.md, "How fast is a training step").
@@ -52,28 +52,6 @@ WARM_COMPILE_S = {"cpu": 12.0, "cuda": 20.0}
 _NOT_IN_GRAPH = ("iters", "lr", "lr_alpha", "warm_up", "seed", "log_every", "val_every",
                  "val_downscale", "save_every", "keep_checkpoints", "max_seconds", "compile",
                  "tensorboard", "threads")
-
-
-def cache_root() -> Path:
-    """neus-l0's cache folder: ``$XDG_CACHE_HOME/neus-l0``, else ``~/.cache/neus-l0``."""
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "neus-l0"
-
-
-def use_persistent_cache() -> Path:
-    """Point torch's inductor cache at ``cache_root()/inductor`` unless the user chose one
-    (``TORCHINDUCTOR_CACHE_DIR``); returns the folder in use."""
-    chosen = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
-    if chosen:
-        return Path(chosen)
-    folder = cache_root() / "inductor"
-    os.environ["TORCHINDUCTOR_CACHE_DIR"] = str(folder)
-    return folder
-
-
-def compile_record_path() -> Path:
-    """The record of measured compile times, one entry per step key."""
-    return cache_root() / "compile_times.json"
 
 
 def step_key(cfg: Config, device: str) -> str:

@@ -53,6 +53,7 @@ from neus_l0.run.resumes import (
     recorded_overrides,
 )
 from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.cache_folder import use_persistent_cache
 from neus_l0.train.callbacks import (
     Checkpoints,
     Hook,
@@ -150,6 +151,8 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
                                 run_dir)
     if line:
         print(f"neus-l0: {line}", file=sys.stderr, flush=True)
+    if cfg.train.compile:
+        use_persistent_cache()  # before the optimiser imports torch._dynamo (the CLI did it too)
     scene = scene.to(device)
     model = make_model(cfg, device)
     run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
