@@ -108,6 +108,13 @@ def test_the_step_key_ignores_the_schedule_but_not_the_graph():
                   ["model.sdf.hidden=32"]):
         assert ca.step_key(load_config("demo", other), "cpu") != key, other
     assert ca.step_key(base, "cuda") != key
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1 if before != 1 else 2)  # kernels are built per thread count
+        assert ca.step_key(base, "cpu") != key
+        assert ca.step_key(base, "cuda") == ca.step_key(base, "cuda")
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_resolving_auto_takes_the_analytic_gradient_only_when_compiling(one_thread):

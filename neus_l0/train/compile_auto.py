@@ -55,11 +55,14 @@ _NOT_IN_GRAPH = ("iters", "lr", "lr_alpha", "warm_up", "seed", "log_every", "val
 
 
 def step_key(cfg: Config, device: str) -> str:
-    """A short hash of what shapes the compiled step: torch's version, the device type and
-    every config key but the schedule and logging (`_NOT_IN_GRAPH`)."""
+    """A short hash of what shapes the compiled step: torch's version, the device type, on
+    the CPU the torch thread count (inductor's C++ kernels are built for it: a cache warmed
+    at 2 threads recompiles at 1), and every config key but the schedule and logging
+    (`_NOT_IN_GRAPH`)."""
     d = to_dict(cfg)
     d["train"] = {k: v for k, v in d["train"].items() if k not in _NOT_IN_GRAPH}
-    text = json.dumps([torch.__version__, device, d], sort_keys=True, default=str)
+    threads = torch.get_num_threads() if device == "cpu" else None
+    text = json.dumps([torch.__version__, device, threads, d], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
