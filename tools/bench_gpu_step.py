@@ -62,8 +62,8 @@ def _profile(step, device: torch.device) -> tuple[int, float, float]:
 def run(scene, conf: str, overrides: list[str], rays: int, mode: str, args,
         tmp: Path) -> str:
     extra = [f"train.batch_size={rays}", "train.tensorboard=false", "train.warm_up=0"]
-    if mode == "compiled":
-        extra += ["train.compile=true"]
+    # `auto` would compile a long config's "eager" arm too: each mode says what it is
+    extra += ["train.compile=true" if mode == "compiled" else "train.compile=false"]
     cfg = load_config(conf, overrides + extra)
     run = build_run_state(scene, cfg, tmp / f"{rays}_{mode}", scene.device, resume=False)
     setup = run.setup  # the hull bounds, sampler, pixel pool and (compiled) step

@@ -114,7 +114,7 @@ def main() -> None:
             ap.error(f"--only: unknown variants {sorted(unknown)} (have {sorted(chosen)})")
         chosen = {k: v for k, v in chosen.items() if k == "baseline" or k in args.only}
     for name, extra in chosen.items():
-        cfg = load_config(args.conf, args.overrides + extra)
+        cfg = load_config(args.conf, ["train.compile=false", *args.overrides, *extra])
         m = make_model(cfg, device)
         m.load_state_dict(state)
         if name == "compile-color":
@@ -172,8 +172,8 @@ def main() -> None:
             grid = (r["grid"],) if r["grid"] is not None else ()
             out = render_rays(r["model"], b["origins"], b["dirs"], cfg.render, cfg.sampler,
                               bounds=grid)
-        r["active"] = out["active"].float().mean().item()
-        r["per_ray"] = out["z_vals"].shape[1]
+        r["active"] = out.active.float().mean().item()
+        r["per_ray"] = out.t.shape[1]
         r["occ"] = r["grid"].fraction_occupied().item() if r["grid"] is not None else 1.0
 
     base = max(runs["baseline"]["its"])
