@@ -32,6 +32,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="with --resume: allow overrides that change what is learnt (train.lr, "
                         "the sampler, the losses, ...); they are recorded in RUN/resumes.jsonl, "
                         "config.yaml stays the original")
+    p.add_argument("--stop-at", type=int, default=None, metavar="ITER",
+                   help="stop (with a checkpoint) at iteration ITER, keeping the learning-rate "
+                        "schedule of train.iters; --resume continues it (to fork a run, e.g. "
+                        "into copies resumed with another sampler)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads (default: train.threads, else the cores free when "
                         "training starts, from the load average)")
@@ -48,6 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.commands._threads import check_threads
     from neus_l0.config.load import load_config
     from neus_l0.device import pick_device, use_cpu_threads
+    from neus_l0.errors import NeusL0Error
     from neus_l0.formats.open import open_scene
     from neus_l0.train.loop import train
 
@@ -58,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
         cfg = load_config(args.conf, args.overrides)
     device = pick_device(args.device)
     check_threads(args.threads)
+    if args.stop_at is not None and args.stop_at < 1:
+        raise NeusL0Error(f"--stop-at {args.stop_at}: must be at least 1")
     threads = use_cpu_threads(args.threads or cfg.train.threads, device)
     if threads is not None:
         how = "as asked" if (args.threads or cfg.train.threads) else "the free cores"
@@ -65,13 +72,16 @@ def run(args: argparse.Namespace) -> int:
               "--threads N to set)", file=sys.stderr, flush=True)
     scene = open_scene(args.data, downscale=cfg.data.downscale, device=device)
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
-                   progress=not args.quiet)
+                   progress=not args.quiet, stop_at=args.stop_at)
     if result.signal:
         print(f"neus-l0 train: stopped by {result.signal} at iteration {result.iteration}; "
               f"checkpoint {result.checkpoint} written; continue with: neus-l0 train "
               f"{args.data} --out {run_dir} --resume", file=sys.stderr)
         return result.exit_code
-    state = "stopped at the time budget" if result.stopped_early else "done"
+    state = "done"
+    if result.stopped_early:
+        state = ("stopped at --stop-at" if args.stop_at is not None
+                 and result.iteration >= args.stop_at else "stopped at the time budget")
     print(f"{state}: {result.iteration} iterations in {result.seconds:.0f} s; "
           f"checkpoint {result.checkpoint}")
     print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/, "
