@@ -56,3 +56,27 @@ def test_a_checkpoint_config_with_compile_loads_as_todays(recwarn):
     old["sampler"]["compile"] = False  # what sessions 1-5 dumped
     assert config_from_dict(old) == Config()
     assert any("sampler.compile" in str(w.message) for w in recwarn.list)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known fault: compiled, the inverse kind's sections "
+                   "draw returns NaN where eager is finite (why train.compile runs it eagerly)")
+def test_the_compiled_inverse_sections_draw_matches_eager():
+    import torch
+
+    from neus_l0.sampling.kernels import sample_l0_sections
+
+    torch.manual_seed(0)
+    z = torch.sort(torch.rand(128, 33) * 2.0 + 0.5, dim=-1).values
+    w = torch.rand(128, 32) ** 8
+    w[::3] = 0.0
+    w[1::7, 5:] = 1e-30
+
+    def draw(z, w):
+        return sample_l0_sections(z, w, 16, "inverse", det=True, check=False)
+
+    eager = draw(z, w)
+    assert torch.isfinite(eager).all()
+    compiled = torch.compile(draw, fullgraph=True, dynamic=False)(z, w)
+    assert torch.isfinite(compiled).all()
+    assert torch.allclose(compiled, eager, atol=1e-5)
