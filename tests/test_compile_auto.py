@@ -177,19 +177,3 @@ def test_the_cli_points_inductor_at_our_cache_before_torch_fixes_it(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          check=True).stdout.splitlines()[-1]
     assert out == str(tmp_path / "mine")
-
-
-@pytest.mark.parametrize("overrides", [["sampler=l0-inverse"],
-                                       ["sampler=l0", "sampler.kind=inverse"]])
-def test_the_inverse_kind_runs_eagerly(one_thread, overrides):
-    """Its compiled step stops the process from C++ (an index out of bounds in a hash-grid
-    kernel): `auto` runs it eagerly, saying why, and an explicit true is a clear error."""
-    cfg = load_config("demo", overrides + ["train.iters=100000", "train.max_seconds=0"])
-    resolved, line = ca.resolve_compile(cfg, "cpu")
-    assert resolved.train.compile is False and "inverse" in line and "eager" in line
-    forced = load_config("demo", overrides + ["train.compile=true",
-                                              "model.sdf.gradient=analytic"])
-    with pytest.raises(ConfigError, match="train.compile=false"):
-        compiled_step(lambda: None, forced, torch.device("cpu"))
-    for fine in ("l0", "l0-linear", "hvs", "neus-exact"):
-        assert ca.compile_blocker(load_config("demo", [f"sampler={fine}"])) is None

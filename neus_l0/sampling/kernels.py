@@ -468,9 +468,15 @@ def _fused_inverse(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,
         E, L = _make_flat(E, L, degenerate)
     idx, lo, hi = _locate(cdf, u)
     q = _fraction(u, lo, hi)
-    scale = d / torch.expm1(-L)  # (R, M); L = -inf pieces (no mass) give 0
-    y = torch.expm1(q.mul_(torch.gather(L, -1, idx)).neg_())
-    return torch.addcmul(torch.gather(t_lo, -1, idx), y, torch.gather(scale, -1, idx))
+    # s = expm1(-q L) / expm1(-L), with the series where |L| is small: constant pieces carry
+    # L = sqrt(tiny), and compiled kernels' expm1 of so small an argument can be 0 (then
+    # the ratio is 0 / 0), where libm's is exact (|L| <= 88 here, so no overflow)
+    Li = torch.gather(L, -1, idx)  # (R, n)
+    small = Li.abs() < _series_threshold(Li.dtype)
+    Ls = torch.where(small, 1.0, Li)
+    series = q + q * (1.0 - q) * Li * (0.5 + (1.0 - 2.0 * q) * Li / 12.0)
+    s = torch.where(small, series, torch.expm1(-q * Ls) / torch.expm1(-Ls))
+    return torch.addcmul(torch.gather(t_lo, -1, idx), s, torch.gather(d, -1, idx))
 
 
 def _fused_linear(a: Tensor, b: Tensor, d: Tensor, t_lo: Tensor, u: Tensor,

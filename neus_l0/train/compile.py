@@ -25,7 +25,7 @@ import torch
 
 from neus_l0.errors import ConfigError
 from neus_l0.train.cache_folder import use_persistent_cache
-from neus_l0.train.compile_auto import compile_blocker, note_compile, step_key
+from neus_l0.train.compile_auto import note_compile, step_key
 
 
 def _warn(msg: str) -> None:
@@ -86,10 +86,6 @@ def compiled_step(fn: Callable, cfg, device: torch.device) -> CompiledStep | Non
                           "(neus_l0.train.compile_auto.resolve_compile)")
     if not cfg.train.compile:
         return None
-    blocker = compile_blocker(cfg)
-    if blocker is not None:
-        raise ConfigError(f"train.compile=true with sampler {cfg.sampler.name} "
-                          f"(kind {cfg.sampler.l0_kind()}): {blocker}; set train.compile=false")
     if cfg.model.sdf.gradient == "autograd":
         raise ConfigError("train.compile=true needs model.sdf.gradient=analytic or "
                           "finite-difference (autograd's double backward cannot be compiled)")

@@ -172,21 +172,6 @@ def as_compiled(cfg: Config) -> Config:
                                train=dataclasses.replace(cfg.train, compile=True))
 
 
-def compile_blocker(cfg: Config) -> str | None:
-    """Why `cfg`'s step must not be compiled, or None.
-
-    The L0 draw's `inverse` kind (`sampler=l0-inverse`, or `sampler.kind=inverse`) compiles,
-    but its first compiled step stops the process from C++ (an index out of bounds in a hash
-    grid kernel, 2026-11-26; `exp`, `linear`, `hvs` and `neus-exact` compile and train, and
-    the eager inverse step is unaffected). Until that is found, it runs eagerly.
-    """
-    s = cfg.sampler
-    if s.name.startswith("l0") and s.l0_kind() == "inverse":
-        return ("the L0 inverse kind's compiled step fails (an index out of bounds in the "
-                "hash grid's kernel, a known fault)")
-    return None
-
-
 def resolve_compile(cfg: Config, device: str, start_iteration: int = 0,
                     run_dir: Path | None = None) -> tuple[Config, str | None]:
     """`cfg` with ``train.compile`` a bool, and the line to print (None when it was one).
@@ -198,10 +183,7 @@ def resolve_compile(cfg: Config, device: str, start_iteration: int = 0,
     if cfg.train.compile != "auto":
         return cfg, None
     recorded = _run_choice(run_dir) if start_iteration > 0 else None
-    blocker = compile_blocker(cfg)
-    if blocker is not None:
-        on, line = False, f"train.compile=auto: eager: {blocker}"
-    elif recorded is not None:
+    if recorded is not None:
         on, line = recorded, (f"train.compile=auto: {'compiled' if recorded else 'eager'}, as "
                               "the run started")
     else:
