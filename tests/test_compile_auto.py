@@ -142,6 +142,13 @@ def test_a_resume_keeps_the_choice_its_run_made(one_thread, tmp_path):
     assert cfg.train.compile is True and cfg.model.sdf.gradient == "analytic"
     assert "as the run started" in line
     _check_same_settings(tmp_path, cfg)  # a demo re-run is not refused for it
+    # a resume that switched compiling off (recorded in resumes.jsonl) is what counts
+    (tmp_path / "resumes.jsonl").write_text(json.dumps(
+        {"iteration": 1000, "overrides": ["train.compile=false"],
+         "changed": ["train.compile"]}) + "\n")
+    cfg, _ = ca.resolve_compile(load_config("demo"), "cpu", start_iteration=2990,
+                                run_dir=tmp_path)
+    assert cfg.train.compile is False
 
 
 def test_compiled_step_refuses_an_unresolved_auto():

@@ -31,8 +31,10 @@ from pathlib import Path
 import torch
 
 from neus_l0.atomic import atomic_write_json
-from neus_l0.config.load import to_dict
+from neus_l0.config.load import load_config, to_dict
 from neus_l0.config.schema import Config
+from neus_l0.errors import NeusL0Error
+from neus_l0.run.resumes import recorded_overrides
 from neus_l0.train.cache_folder import compile_record_path
 
 #: Seconds per ray sample of an eager CPU step on one thread: `demo` (128 rays x 64 samples)
@@ -149,14 +151,13 @@ def choose_compile(cfg: Config, device: str, start_iteration: int = 0,
 
 
 def _run_choice(run_dir: Path | None) -> bool | None:
-    """The compile choice a run folder's ``config.yaml`` recorded, if any."""
-    import yaml
-
+    """The compile choice a run folder recorded (``config.yaml`` with its resumes' overrides,
+    as a resume reads it: `neus_l0.run.resumes.recorded_overrides`), if any."""
     if run_dir is None or not (run_dir / "config.yaml").is_file():
         return None
     try:
-        value = yaml.safe_load((run_dir / "config.yaml").read_text())["train"]["compile"]
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        value = load_config(run_dir / "config.yaml", recorded_overrides(run_dir)).train.compile
+    except NeusL0Error:
         return None
     return value if isinstance(value, bool) else None
 
