@@ -176,9 +176,10 @@ def test_surface_distance_is_exact_near_and_close_far():
 
 
 def test_pit_ray_hits_the_true_surface_inside_the_pit(bench):
+    from neus_l0.evaluation.features import load_features
     from neus_l0.figures.ray_weights import find_pit_ray
     from neus_l0.figures.render import SurfaceDistance
-    from neus_l0.figures.views import load_features, scene_cameras
+    from neus_l0.figures.views import scene_cameras
 
     scene_dir = bench / "scenes" / "demo"
     feats = load_features(scene_dir)

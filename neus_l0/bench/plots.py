@@ -224,7 +224,7 @@ def paired_differences(rows: list[dict], reference: str = "hvs") -> str:
     iterations reached (load and per-step cost move it under a wall-clock budget), and the
     two-sided sign-test p-value of "lower as often as higher". Empty when there are no pairs.
     """
-    from math import comb
+    from neus_l0.evaluation.paired import sign_test_p
 
     done = {(r["scene"], r["sampler"], r["budget_s"], r["seed"]): r for r in _done(rows)}
     samplers = sorted({k[1] for k in done} - {reference})
@@ -241,8 +241,7 @@ def paired_differences(rows: list[dict], reference: str = "hvs") -> str:
         if not diffs:
             continue
         n, wins = len(diffs), sum(d < 0 for d in diffs)
-        k = min(wins, n - wins)
-        p = min(1.0, 2 * sum(comb(n, i) for i in range(k + 1)) / 2**n)
+        p = sign_test_p(wins, n)
         d = np.array(diffs)
         ratio = f"{np.mean(ratios):.2f}" if ratios else "–"
         lines.append(f"| {sampler} | {n} | {wins} | {d.mean():+.3f} | {d.min():+.3f} .. "

@@ -47,7 +47,8 @@ from neus_l0.train.signals import StopOnSignal
 
 #: Settings that must match between invocations on the same sweep folder.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
-               "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels")
+               "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels",
+               "snapshots")
 
 
 @dataclasses.dataclass
@@ -162,6 +163,12 @@ DEVICE_DEFAULTS = {
 }
 
 
+def snapshot_marks(budget: float, n: int) -> list[float]:
+    """The snapshot marks of a run of `budget` seconds scored at `n` points: ``budget * k / n``
+    for k = 1..n-1 (the n-th point is the run's end, scored anyway); [] for n <= 1."""
+    return [budget * k / n for k in range(1, n)]
+
+
 def device_defaults(device: str) -> dict:
     """`DEVICE_DEFAULTS` of ``cuda`` (any ``cuda:N``) or else ``cpu``."""
     return dict(DEVICE_DEFAULTS["cuda" if str(device).startswith("cuda") else "cpu"])
@@ -197,6 +204,8 @@ class SweepSpec:
             (`neus_l0.bench.runner.psnr_stride`).
         backend: ``local`` (one run after another) or ``ray`` (Ray tasks).
         timeout: seconds after which a run's process is killed (None: no limit).
+        snapshots: score each run at ``budget * k / snapshots`` seconds, k = 1..snapshots-1,
+            besides its end (`snapshot_marks`; 0: the end only).
     """
 
     out_dir: str | Path
@@ -218,6 +227,7 @@ class SweepSpec:
     psnr_pixels: int = 10000
     backend: str = "local"
     timeout: float | None = None
+    snapshots: int = 0
 
     def __post_init__(self):
         for key, value in device_defaults(self.device).items():
@@ -233,6 +243,8 @@ class SweepSpec:
             "holdout": self.holdout, "device": self.device, "threads": self.threads,
             "resolution": self.resolution, "eval_density": self.eval_density,
             "sample_rays": self.sample_rays, "psnr_pixels": self.psnr_pixels,
+            # only when set, so that folders from before --snapshots still match
+            **({"snapshots": self.snapshots} if self.snapshots else {}),
         }
 
     def run_spec(self, scene: str, folder: Path, sampler: str, budget: float, seed: int,
@@ -245,7 +257,8 @@ class SweepSpec:
                        device=self.device, threads=self.threads, holdout=self.holdout,
                        resolution=self.resolution, eval_density=self.eval_density,
                        sample_rays=self.sample_rays, config=config,
-                       psnr_pixels=self.psnr_pixels)
+                       psnr_pixels=self.psnr_pixels,
+                       snapshots=snapshot_marks(float(budget), self.snapshots))
 
 
 def plan_runs(spec: SweepSpec, resolved: Sequence[tuple[str, Path]],

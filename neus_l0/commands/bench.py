@@ -55,6 +55,8 @@ def check_numbers(args: argparse.Namespace) -> None:
         refuse("--psnr-pixels", args.psnr_pixels, "must be at least 1")
     if args.timeout is not None and not (math.isfinite(args.timeout) and args.timeout > 0):
         refuse("--timeout", f"{args.timeout:g}", "must be positive, finite seconds")
+    if args.snapshots < 0:
+        refuse("--snapshots", args.snapshots, "must be 0 or more")
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
@@ -111,6 +113,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                         "rays")
     p.add_argument("--timeout", type=float, default=None,
                    help="kill a run's process after this many seconds (default: no limit)")
+    p.add_argument("--snapshots", type=int, default=0, metavar="N",
+                   help="score each run at N points of its budget (budget * k / N, k = 1..N; "
+                        "the last is the run's end): eval.json's curve of Chamfer against "
+                        "training time (default 0: the end only)")
     p.add_argument("--plot-only", metavar="DIR", default=None,
                    help="only redraw DIR/plots/ from DIR/results.json")
     p.add_argument("--no-plots", action="store_true", help="do not draw DIR/plots/")
@@ -164,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
         width=args.width, height=args.height, holdout=args.holdout,
         device=pick_device(args.device), threads=args.threads, resolution=args.resolution,
         eval_density=args.eval_density, sample_rays=args.sample_rays,
-        psnr_pixels=args.psnr_pixels, backend=args.backend, timeout=args.timeout)
+        psnr_pixels=args.psnr_pixels, backend=args.backend, timeout=args.timeout,
+        snapshots=args.snapshots)
     if any(not Path(s).is_dir() for s in spec.scenes):
         from neus_l0.bench.holdout import split_views
 

@@ -295,6 +295,30 @@ def write_maps(truth: GroundTruth, vertices: np.ndarray, faces: np.ndarray,
     return {"vmax": top, "cmap": spec.cmap, **{k: str(v) for k, v in written.items()}}
 
 
+def score_features(scene: str | Path, pred: np.ndarray, res: ChamferResult, gt: np.ndarray,
+                   max_dist: float) -> dict | None:
+    """The report's ``features`` entry on a synthetic scene with features (None: none).
+
+    Args:
+        scene: the scene folder (its ``features.json``); pred: (N, 3) the points scored for
+        accuracy, res: their result (``dist_pred`` (N,), ``dist_gt`` (M,)); gt: (M, 3) the
+        ground-truth points scored for completeness; max_dist: the truncation.
+
+    Returns:
+        ``{"each": [per feature], "by_kind": {kind: pooled}}``
+        (`neus_l0.evaluation.features`).
+    """
+    from neus_l0.evaluation.features import feature_errors, kind_errors, load_features
+
+    if not (Path(scene) / "features.json").is_file():
+        return None
+    feats = load_features(scene)
+    if not feats:
+        return None
+    args = (pred, res.dist_pred, gt, res.dist_gt, feats, max_dist)
+    return {"each": feature_errors(*args), "by_kind": kind_errors(*args)}
+
+
 def _num(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
@@ -366,8 +390,11 @@ def score_mesh(mesh: str | Path, spec: ScoreSpec | None = None, *,
     settings = {"protocol": truth.protocol, "density": spec.density,
                 "thin_radius": spec.density, "max_dist": spec.max_dist, **spec.margins,
                 "seed": spec.seed, "distance": res.distance, "cull": cull_info}
+    feats = None
     if truth.protocol == "synthetic":
         settings["depth_tol"] = spec.depth_tol
+        feats = score_features(spec.scene, pred[masks["pred_kept"]], res,
+                               truth.points[masks["gt_used"]], spec.max_dist)
     return finite_json({
         "protocol": truth.protocol,
         "mesh": str(mesh),
@@ -378,6 +405,7 @@ def score_mesh(mesh: str | Path, spec: ScoreSpec | None = None, *,
         "counts": {k: int(v) for k, v in counts.items()},
         "settings": settings,
         "error_maps": maps,
+        **({"features": feats} if feats else {}),
         "seconds": round(time.perf_counter() - t0, 3),
         "version": __version__,
     })

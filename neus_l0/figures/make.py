@@ -119,8 +119,9 @@ def load_inputs(scene_dir: Path, runs: dict[str, BenchRun], log=print) -> Figure
     Raises:
         NeusL0Error: a missing or unreadable file, or a scene without cameras.
     """
+    from neus_l0.evaluation.features import load_features
     from neus_l0.figures.render import SurfaceDistance
-    from neus_l0.figures.views import load_features, scene_cameras
+    from neus_l0.figures.views import scene_cameras
 
     features = load_features(scene_dir)
     cams = scene_cameras(scene_dir)

@@ -1,7 +1,7 @@
 """Cameras of the figures: an overview scene camera, a virtual camera per feature, crop boxes.
 
 A camera is a NeuS projection ``P`` (3, 4) world -> pixels (pixel centres at integers) and
-an image size. Features come from a synthetic scene's ``features.json`` (world units):
+an image size. Features are a synthetic scene's (`neus_l0.evaluation.features.load_features`):
 ``kind`` (pit | thin), ``name``, ``center`` (3,), ``radius``, ``axis`` (3,) or null.
 """
 
@@ -20,7 +20,6 @@ from neus_l0.data.cameras import (
     read_world_mats,
     scale_projection,
 )
-from neus_l0.errors import NeusL0Error
 
 #: Half-width of a crop box, in feature radii.
 CROP_MARGIN = 1.3
@@ -47,22 +46,6 @@ class Camera:
         """The same view at `factor` times the resolution (pixel centres stay at integers)."""
         return Camera(scale_projection(self.P, factor), int(round(self.width * factor)),
                       int(round(self.height * factor)))
-
-
-def load_features(scene_dir: str | Path) -> list[dict]:
-    """The features of a synthetic scene (``features.json``), in world units."""
-    path = Path(scene_dir) / "features.json"
-    if not path.is_file():
-        raise NeusL0Error(f"{path}: missing (figures need a synthetic scene's features)")
-    try:
-        feats = json.loads(path.read_text())["features"]
-        for f in feats:
-            f["center"] = np.asarray(f["center"], dtype=np.float64).reshape(3)
-            f["radius"] = float(f["radius"])
-            f["axis"] = None if f.get("axis") is None else np.asarray(f["axis"], np.float64)
-    except (KeyError, ValueError, TypeError) as exc:
-        raise NeusL0Error(f"{path}: malformed ({exc})") from exc
-    return feats
 
 
 def scene_cameras(scene_dir: str | Path) -> list[Camera]:

@@ -1,0 +1,244 @@
+"""The fork study and what it reports with: feature errors, paired statistics, the study's
+pieces, and its command end to end on a tiny scene."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from math import comb
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from neus_l0.bench.sweep import SweepSpec, snapshot_marks
+from neus_l0.cli import main
+from neus_l0.errors import NeusL0Error
+from neus_l0.evaluation.features import feature_errors, kind_errors, load_features
+from neus_l0.evaluation.paired import compare, sign_test_p, t_interval
+from neus_l0.evaluation.score import score_mesh
+from neus_l0.study.fork import ARMS, ForkSpec, collect_rows, train_command, write_view_subset
+from neus_l0.study.fork_report import paired_rows, summary, to_csv
+
+# ------------------------------------------------------------------------------------------
+# Feature errors
+
+
+def _features():
+    return [{"kind": "pit", "name": "p", "center": np.zeros(3), "radius": 1.0, "axis": None},
+            {"kind": "pit", "name": "q", "center": np.array([1.5, 0, 0]), "radius": 1.0,
+             "axis": None},
+            {"kind": "thin", "name": "t", "center": np.array([10.0, 0, 0]), "radius": 0.5,
+             "axis": None}]
+
+
+def test_feature_errors_are_the_means_inside_each_ball():
+    pred = np.array([[0, 0, 0], [0.5, 0, 0], [1.2, 0, 0], [10, 0, 0], [20, 0, 0]], float)
+    d_pred = np.array([1.0, 3.0, 5.0, 7.0, 100.0])
+    gt = np.array([[0, 0, 0.9], [2.4, 0, 0], [10.4, 0, 0]], float)
+    d_gt = np.array([2.0, 4.0, math.inf])
+    out = {f["name"]: f for f in feature_errors(pred, d_pred, gt, d_gt, _features(), 20.0)}
+    # ball p (radius 1 at 0): pred 0, 0.5 -> (1 + 3) / 2; gt (0, 0, 0.9) -> 2
+    assert out["p"]["accuracy"] == 2.0 and out["p"]["completeness"] == 2.0
+    assert out["p"]["overall"] == 2.0 and (out["p"]["n_pred"], out["p"]["n_gt"]) == (2, 1)
+    # ball q (radius 1 at 1.5): pred 0.5, 1.2 -> 4; gt 2.4 -> 4
+    assert out["q"]["accuracy"] == 4.0 and out["q"]["completeness"] == 4.0
+    # ball t: pred at 10 (7); its one gt point is beyond max_dist -> no completeness
+    assert out["t"]["accuracy"] == 7.0 and math.isnan(out["t"]["completeness"])
+    assert math.isnan(out["t"]["overall"]) and out["t"]["n_gt"] == 1
+
+
+def test_kind_errors_count_a_point_in_two_balls_once():
+    pred = np.array([[0, 0, 0], [0.75, 0, 0], [1.5, 0, 0]], float)  # 0.75 is in both pits
+    d_pred = np.array([1.0, 2.0, 6.0])
+    gt = np.array([[10, 0, 0]], float)
+    kinds = kind_errors(pred, d_pred, gt, np.array([0.5]), _features(), 20.0)
+    assert kinds["pit"]["accuracy"] == 3.0 and kinds["pit"]["n_pred"] == 3
+    assert math.isnan(kinds["pit"]["completeness"]) and kinds["pit"]["n_gt"] == 0
+    assert kinds["thin"]["completeness"] == 0.5 and kinds["thin"]["n_pred"] == 0
+    assert kind_errors(pred, d_pred, gt, np.array([0.5]), [], 20.0) == {}
+
+
+def test_load_features_refuses_a_malformed_file(tmp_path):
+    with pytest.raises(NeusL0Error, match="features.json: missing"):
+        load_features(tmp_path)
+    (tmp_path / "features.json").write_text(json.dumps(
+        {"features": [{"kind": "pit", "name": "x", "center": [0, 0, float("nan")],
+                       "radius": 1.0}]}))
+    with pytest.raises(NeusL0Error, match="features.json: malformed"):
+        load_features(tmp_path)
+    (tmp_path / "features.json").write_text('{"features": [{"kind": "pit"}]}')
+    with pytest.raises(NeusL0Error, match="malformed"):
+        load_features(tmp_path)
+
+
+def test_score_mesh_reports_the_features_of_a_synthetic_scene(tiny_scene):
+    exact = score_mesh(tiny_scene / "gt_mesh.ply", scene=tiny_scene, density=2.0,
+                       log=lambda _: None)
+    kinds = exact["features"]["by_kind"]
+    assert set(kinds) == {"pit", "thin"}
+    assert [f["name"] for f in exact["features"]["each"]] == [
+        f["name"] for f in load_features(tiny_scene)]
+    # the true surface: accuracy exact (point-to-mesh), completeness within the sampling
+    for k in kinds.values():
+        assert k["accuracy"] < 1e-6 and k["completeness"] < 2.0 and k["n_pred"] > 0
+
+
+# ------------------------------------------------------------------------------------------
+# Paired statistics
+
+
+def test_sign_test_closed_forms():
+    assert sign_test_p(9, 9) == pytest.approx(2 / 512)
+    assert sign_test_p(0, 9) == pytest.approx(2 / 512)
+    assert sign_test_p(7, 9) == pytest.approx(2 * (1 + 9 + 36) / 512)
+    assert sign_test_p(2, 4) == 1.0 and sign_test_p(0, 0) == 1.0
+    with pytest.raises(ValueError):
+        sign_test_p(5, 4)
+
+
+@given(st.integers(1, 60).flatmap(lambda n: st.tuples(st.just(n), st.integers(0, n))))
+@settings(max_examples=200, deadline=None)
+def test_sign_test_is_symmetric_and_a_probability(case):
+    n, k = case
+    p = sign_test_p(k, n)
+    assert 0 < p <= 1 and p == sign_test_p(n - k, n)
+    # the tail it sums, computed another way
+    tail = sum(comb(n, i) for i in range(n + 1) if min(i, n - i) <= min(k, n - k)) / 2**n
+    assert p == pytest.approx(min(1.0, tail if k * 2 != n else 1.0), rel=1e-12)
+
+
+def test_t_interval_matches_scipy_and_covers_the_mean_at_its_rate():
+    from scipy import stats
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(3.0, 2.0, 7)
+    mean, lo, hi = t_interval(x)
+    ref = stats.t.interval(0.95, 6, loc=x.mean(), scale=stats.sem(x))
+    assert (lo, hi) == pytest.approx(ref, rel=1e-12) and mean == pytest.approx(x.mean())
+    covered = sum(lo <= 3.0 <= hi for lo, hi in
+                  (t_interval(rng.normal(3.0, 2.0, 5))[1:] for _ in range(4000)))
+    assert abs(covered / 4000 - 0.95) < 0.015
+    assert t_interval([2.0])[0] == 2.0 and math.isinf(t_interval([2.0])[1])
+    assert all(math.isnan(v) for v in t_interval([]))
+
+
+def test_compare_pairs_values_and_leaves_out_missing_ones():
+    c = compare([2.0, 4.0, 5.0, None, 1.0], [1.0, 3.0, 5.0, 1.0, float("nan")])
+    assert (c["n"], c["better"], c["ties"]) == (3, 2, 1)
+    assert c["diff"] == pytest.approx(-2 / 3)
+    assert c["rel"] == pytest.approx(100 * (-0.5 - 0.25 + 0) / 3)
+    assert c["p"] == sign_test_p(2, 2) == 0.5
+    up = compare([10.0, 11.0], [12.0, 13.0], lower_is_better=False)
+    assert up["better"] == 2 and up["diff"] == pytest.approx(2.0)
+    with pytest.raises(ValueError):
+        compare([1.0], [1.0, 2.0])
+
+
+# ------------------------------------------------------------------------------------------
+# The study's pieces
+
+
+def test_view_subset_renumbers_images_masks_and_cameras(tiny_scene, tmp_path):
+    out = write_view_subset(tiny_scene, [1, 3, 6], tmp_path / "sub")
+    assert sorted(p.name for p in (out / "image").iterdir()) == ["000.png", "001.png",
+                                                                 "002.png"]
+    src, sub = np.load(tiny_scene / "cameras_sphere.npz"), np.load(out / "cameras_sphere.npz")
+    for new, old in enumerate([1, 3, 6]):
+        assert (sub[f"world_mat_{new}"] == src[f"world_mat_{old}"]).all()
+        assert (out / "mask" / f"{new:03d}.png").read_bytes() == \
+            (tiny_scene / "mask" / f"{old:03d}.png").read_bytes()
+    assert len(sub.files) == 6
+    stamp = (out / "views.json").stat().st_mtime_ns
+    write_view_subset(tiny_scene, [1, 3, 6], tmp_path / "sub")  # done: kept
+    assert (out / "views.json").stat().st_mtime_ns == stamp
+
+
+def test_the_commands_fork_one_hvs_run(tmp_path):
+    spec = ForkSpec(tmp_path, ["demo"], base_iters=300, arm_iters=100, threads=2,
+                    overrides=["train.lr=1e-3"])
+    base = train_command(spec, tmp_path / "d", tmp_path / "base", None, 4)
+    assert base[2:4] == ["neus_l0", "train"] and "--stop-at" in base
+    assert base[base.index("--stop-at") + 1] == "300" and base[-1] == "train.iters=400"
+    assert "sampler=hvs" in base and "train.seed=4" in base and "train.lr=1e-3" in base
+    assert base.index("train.lr=1e-3") < base.index("sampler=hvs")
+    arm = train_command(spec, tmp_path / "d", tmp_path / "a", "l0 interp", 4)
+    assert arm[-4:] == ["--resume", "--change-config", "sampler=l0",
+                        "sampler.masses=interpolant"]
+    assert arm[arm.index("--threads") + 1] == "2"
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(arms=["hvs", "l1"]), "unknown l1"), (dict(arms=["l0"]), "include hvs"),
+    (dict(arm_iters=0), "--arm-iters 0"), (dict(holdout=1), "--holdout 1"),
+    (dict(seeds=[]), "at least one"), (dict(resolution=0), "--resolution 0"),
+    (dict(eval_density=float("nan")), "--eval-density nan")])
+def test_fork_spec_refuses_what_cannot_run(tmp_path, change, match):
+    with pytest.raises(NeusL0Error, match=match):
+        ForkSpec(tmp_path, ["demo"], **change).check()
+
+
+def _row(scene, seed, arm, overall, psnr=20.0):
+    return {"scene": scene, "seed": seed, "arm": arm, "sampler": arm, "masses": "sections",
+            "iteration": 10, "train_s": 1.0, "overall": overall, "accuracy": overall,
+            "completeness": overall, "pit": None, "thin": None, "sample_dist": 1.0,
+            "psnr": psnr}
+
+
+def test_report_pairs_every_arm_with_hvs_over_scenes_and_seeds(tmp_path):
+    rows = [_row(s, k, "hvs", 2.0 + k) for s in ("a", "b") for k in range(3)]
+    rows += [_row(s, k, "l0", 1.9 + k, psnr=21.0) for s in ("a", "b") for k in range(3)]
+    rows += [_row("a", 0, "base", 3.0)]
+    c = paired_rows(rows, "overall")["l0"]
+    assert (c["n"], c["better"], c["p"]) == (6, 6, sign_test_p(6, 6))
+    assert c["diff"] == pytest.approx(-0.1)
+    assert paired_rows(rows, "psnr")["l0"]["better"] == 6  # higher PSNR is better
+    text = summary(rows, ForkSpec(tmp_path, ["a", "b"]))
+    assert "| Chamfer (lower is better) | l0 | 6 | 6 |" in text and "| a | base | 1 |" in text
+    lines = list(csv.DictReader(to_csv(rows).splitlines()))
+    assert len(lines) == 13 and lines[0]["pit"] == ""
+
+
+def test_bench_snapshot_marks_and_settings():
+    assert snapshot_marks(90, 3) == [30.0, 60.0] and snapshot_marks(90, 1) == []
+    assert snapshot_marks(90, 0) == []
+    plain = SweepSpec("d", [], [], [], conf="demo")
+    assert "snapshots" not in plain.settings({})  # folders from before still match
+    assert SweepSpec("d", [], [], [], conf="demo", snapshots=4).settings({})["snapshots"] == 4
+
+
+def test_bench_refuses_negative_snapshots(tmp_path, capsys):
+    assert main(["bench", "--scenes", "demo", "--seconds", "5", "--out", str(tmp_path / "b"),
+                 "--snapshots", "-1"]) == 2
+    assert "--snapshots" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------
+# End to end
+
+
+def test_fork_study_end_to_end(tiny_scene, tmp_path, small_overrides, capsys):
+    """Base, two arms, scores and summary on the tiny scene (about a minute)."""
+    out = tmp_path / "fork"
+    args = ["study", "fork", "--out", str(out), "--scenes", str(tiny_scene), "--seeds", "0",
+            "--arms", "hvs,l0", "--base-iters", "6", "--arm-iters", "4", "--resolution", "48",
+            "--eval-density", "2.0", *small_overrides,
+            "train.compile=false", "train.log_every=2"]
+    assert main(args) == 0
+    rows = collect_rows(out)
+    assert [(r["arm"], r["iteration"], r["sampler"]) for r in rows] == [
+        ("base", 6, "hvs"), ("hvs", 10, "hvs"), ("l0", 10, "l0")]
+    for r in rows:
+        assert r["overall"] > 0 and r["psnr"] > 0 and r["sample_dist"] > 0
+        assert r["thin"] is not None  # a blob this early: it may not reach the pit's ball
+    run = out / "runs" / "demo__seed0"
+    resumes = [json.loads(x) for x in (run / "l0" / "resumes.jsonl").read_text().splitlines()]
+    assert resumes[0]["iteration"] == 6 and resumes[0]["changed"] == ["sampler.name"]
+    assert "| Chamfer (lower is better) | l0 | 1 |" in (out / "summary.md").read_text()
+    # a re-run finds everything done
+    stamps = {p: p.stat().st_mtime_ns for p in run.glob("*/score.json")}
+    assert main(args) == 0
+    assert {p: p.stat().st_mtime_ns for p in run.glob("*/score.json")} == stamps
+    assert set(ARMS) >= {"hvs", "l0"}
