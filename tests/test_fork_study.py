@@ -242,3 +242,64 @@ def test_fork_study_end_to_end(tiny_scene, tmp_path, small_overrides, capsys):
     assert main(args) == 0
     assert {p: p.stat().st_mtime_ns for p in run.glob("*/score.json")} == stamps
     assert set(ARMS) >= {"hvs", "l0"}
+
+
+# ------------------------------------------------------------------------------------------
+# The budget frontier
+
+
+def test_time_to_reach_interpolates_between_snapshots():
+    from neus_l0.study.frontier import time_to_reach
+
+    curve = [(30.0, 100, 4.0), (60.0, 200, 2.0), (90.0, 300, 1.5)]
+    assert time_to_reach(curve, 3.0) == pytest.approx(45.0)
+    assert time_to_reach(curve, 2.0) == 60.0 and time_to_reach(curve, 5.0) == 30.0
+    assert time_to_reach(curve, 1.75) == pytest.approx(75.0)
+    assert math.isinf(time_to_reach(curve, 1.0))
+    assert time_to_reach([(10.0, 1, None), (20.0, 2, 1.0)], 1.0) == 20.0
+
+
+def _bench_folder(root, n, runs):
+    """A bench folder in the layout `read_bench` reads: sweep.json, results.json, eval.json."""
+    (root / "runs").mkdir(parents=True)
+    (root / "sweep.json").write_text(json.dumps(
+        {"config": {"render": {"n_samples": n, "n_importance": n}}}))
+    rows = []
+    for scene, seed, sampler, curve in runs:
+        name = f"{scene}__{sampler}__90s__seed{seed}"
+        (root / "runs" / name).mkdir()
+        (root / "runs" / name / "eval.json").write_text(json.dumps({"curve": [
+            {"seconds": t, "iteration": i, "overall": c} for t, i, c in curve]}))
+        rows.append({"scene": scene, "seed": seed, "sampler": sampler, "status": "done",
+                     "budget_s": 90.0, "iterations": curve[-1][1], "overall": curve[-1][2],
+                     "run_dir": f"runs/{name}"})
+    (root / "results.json").write_text(json.dumps(rows))
+    return root
+
+
+def test_frontier_pairs_each_budget_with_hvs_at_the_largest(tmp_path, capsys):
+    from neus_l0.study.frontier import frontier_rows, read_bench, reference_arm
+
+    big = _bench_folder(tmp_path / "b32", 32, [
+        (s, k, "hvs", [(30, 100, 3.0), (60, 200, 2.0), (90, 300, 1.8)])
+        for s in ("a", "b") for k in (0, 1)])
+    small = _bench_folder(tmp_path / "b8", 8, [
+        (s, k, smp, [(30, 200, 2.5), (60, 400, 1.7 if smp == "l0" else 1.9),
+                     (90, 600, 1.6 if smp == "l0" else 1.85)])
+        for s in ("a", "b") for k in (0, 1) for smp in ("hvs", "l0")])
+    runs = read_bench(big) + read_bench(small)
+    assert reference_arm(runs) == ("hvs", "32+32")
+    rows = {(r["scene"], r["seed"], r["sampler"], r["samples"]): r for r in frontier_rows(runs)}
+    l0 = rows[("a", 0, "l0", "8+8")]
+    assert l0["reference"] == 1.8 and l0["overall"] == 1.6
+    assert l0["reach_s"] == pytest.approx(30 + 30 * 0.7 / 0.8)
+    assert math.isinf(rows[("a", 0, "hvs", "8+8")]["reach_s"])
+    assert main(["study", "frontier", "--bench", f"{big},{small}",
+                 "--out", str(tmp_path / "f")]) == 0
+    text = (tmp_path / "f" / "summary.md").read_text()
+    assert "| l0 | 8+8 | 4 | 600 | 2.500 | 1.700 | 1.600 | -11.1 (-11.1 .. -11.1) | 4 |" in text
+    assert "| hvs | 8+8 | 4 |" in text and "0 of 4" in text
+    assert (tmp_path / "f" / "frontier.png").read_bytes()[:4] == b"\x89PNG"
+    assert main(["study", "frontier", "--bench", str(tmp_path / "none"),
+                 "--out", str(tmp_path / "g")]) == 2
+    assert "not a bench folder" in capsys.readouterr().err

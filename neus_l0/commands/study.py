@@ -28,9 +28,12 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                     "then --resume --change-config sampler=...), and score each (Chamfer, "
                     "pits and thin parts, the fine samples' distance to the true surface, "
                     "held-out PSNR); writes fork.csv and summary.md (paired against hvs "
-                    "with t intervals and sign tests) into DIR. docs/BENCHMARKS.md reads "
-                    "both.")
-    p.add_argument("study", choices=["sampling", "fork"], help="which study")
+                    "with t intervals and sign tests) into DIR. `frontier`: from `neus-l0 "
+                    "bench --snapshots N` folders (one per sample budget), Chamfer against "
+                    "training time per sampler and budget, and whether any reaches hvs's "
+                    "Chamfer at the largest budget sooner; writes frontier.csv, summary.md "
+                    "and frontier.png. docs/BENCHMARKS.md reads them.")
+    p.add_argument("study", choices=["sampling", "fork", "frontier"], help="which study")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the results")
     p.add_argument("--rays", type=int, default=128, help="sampling: rays per shape (128)")
     p.add_argument("--quick", action="store_true",
@@ -51,6 +54,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="fork: iterations of each arm after the fork (1000)")
     p.add_argument("--threads", type=int, default=1,
                    help="fork: torch CPU threads per training and for scoring (1)")
+    p.add_argument("--bench", type=_list, default=None, metavar="DIR1,DIR2",
+                   help="frontier: `neus-l0 bench --snapshots N` folders, one per sample "
+                        "budget (render.n_samples / n_importance overrides)")
     p.add_argument("--resolution", type=int, default=128,
                    help="fork: marching-cubes resolution of each scored mesh (128)")
     p.add_argument("--eval-density", type=float, default=0.5,
@@ -73,6 +79,14 @@ def run(args: argparse.Namespace) -> int:
         raise NeusL0Error(f"{out}: cannot create the output folder ({exc.strerror})") from None
     if args.study == "fork":
         return _fork(args, out)
+    if args.study == "frontier":
+        from neus_l0.study.frontier import write_outputs
+
+        if not args.bench:
+            raise NeusL0Error("study frontier needs --bench DIR1,DIR2,...")
+        print(write_outputs(args.bench, out))
+        print(f"wrote {out}/frontier.csv, summary.md, frontier.png")
+        return 0
     if args.overrides:
         raise NeusL0Error(f"{' '.join(args.overrides)}: config overrides are for the fork "
                           "study")

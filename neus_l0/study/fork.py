@@ -176,7 +176,7 @@ def train_command(spec: ForkSpec, data: Path, run_dir: Path, arm: str | None,
 
 def _run(cmd: list[str], log: Callable[[str], None], log_file: Path) -> None:
     """Run `cmd`, its output into `log_file`; a failure names the command and its last line."""
-    log("$ " + " ".join(c if " " not in c else repr(c) for c in cmd[2:]))
+    log("$ neus-l0 " + " ".join(c if " " not in c else repr(c) for c in cmd[3:]))
     with open(log_file, "a", encoding="utf-8") as f:
         rc = subprocess.call(cmd, stdout=f, stderr=subprocess.STDOUT)
     if rc != 0:
