@@ -8,4 +8,6 @@
 - `ray_weights`: coarse weights and the two up-sampling densities along one ray into a pit.
 - `make`: `make_figures` (load the inputs, render the overview and the crops, write the mesh
   figures and the ray figure) and `write_index` (`index.md`, one entry per figure).
+- `real`: scenes without ground truth (real data): the samplers' meshes shaded side by side,
+  zoomed on the places where they differ most (`disagreement_regions`).
 """

@@ -28,7 +28,8 @@ class FigureEntry:
     runs: list[str]
 
 
-def _load_mesh(path: Path):
+def load_mesh(path: Path) -> trimesh.Trimesh:
+    """A mesh file as one trimesh, unprocessed (NeusL0Error: unreadable or without faces)."""
     import trimesh
 
     try:
@@ -113,6 +114,12 @@ class Overview:
     boxes: list
 
 
+def describe_runs(runs: dict[str, BenchRun]) -> str:
+    """"scene ..., budget ... s, seed ..." of runs that share them (for the titles)."""
+    any_run = next(iter(runs.values()))
+    return f"scene '{any_run.scene}', budget {any_run.budget_s:g} s, seed {any_run.seed}"
+
+
 def load_inputs(scene_dir: Path, runs: dict[str, BenchRun], log=print) -> FigureInputs:
     """Read the scene's features, cameras and true mesh and every run's mesh.
 
@@ -127,10 +134,9 @@ def load_inputs(scene_dir: Path, runs: dict[str, BenchRun], log=print) -> Figure
     cams = scene_cameras(scene_dir)
     if not cams:
         raise NeusL0Error(f"{scene_dir / 'cameras_sphere.npz'}: no cameras")
-    gt = _load_mesh(scene_dir / "gt_mesh.ply")
-    preds = {s: _load_mesh(r.mesh) for s, r in runs.items()}
-    any_run = next(iter(runs.values()))
-    what = f"scene '{any_run.scene}', budget {any_run.budget_s:g} s, seed {any_run.seed}"
+    gt = load_mesh(scene_dir / "gt_mesh.ply")
+    preds = {s: load_mesh(r.mesh) for s, r in runs.items()}
+    what = describe_runs(runs)
     inputs = FigureInputs(scene_dir, runs, features, cams, gt, preds, SurfaceDistance(gt), what)
     log(f"figures: {what}; runs {', '.join(inputs.run_names)}")
     return inputs
@@ -140,7 +146,7 @@ def render_overview(inp: FigureInputs, width: int, log=print) -> Overview:
     """Every mesh from the scene camera that sees the features best, `width` pixels wide,
     cropped to the part where something is seen."""
     from neus_l0.figures.render import render_mesh
-    from neus_l0.figures.views import crop_box, overview_camera
+    from neus_l0.figures.views import overview_camera
 
     view = overview_camera(inp.cams, inp.features)
     cam = inp.cams[view].scaled(width / inp.cams[view].width)
@@ -148,13 +154,24 @@ def render_overview(inp: FigureInputs, width: int, log=print) -> Overview:
     over = {"ground truth": render_mesh(inp.gt, cam)}
     for s in inp.names:
         over[s] = render_mesh(inp.preds[s], cam, inp.distance)
-    x0, y0 = _content_origin(over, pad=12)
-    for r in over.values():  # crop every panel to the part where something is seen
+    return Overview(view, over, crop_to_content(over, cam, inp.features))
+
+
+def crop_to_content(renders: dict, cam: Camera, features: list[dict], pad: int = 12) -> list:
+    """Crop every render of `renders` ({panel: {image name: (H, W) array}}, in place) to the
+    part where something is seen, plus `pad` pixels.
+
+    Returns:
+        the features' (name, kind, box (4,)) in the cropped pixels, for `overview_figure`.
+    """
+    from neus_l0.figures.views import crop_box
+
+    x0, y0 = _content_origin(renders, pad)
+    for r in renders.values():
         for k in list(r):
             r[k] = r[k][y0[0]:y0[1], x0[0]:x0[1]]
-    boxes = [(f["name"], f["kind"], crop_box(cam, f["center"], f["radius"]) - [x0[0], y0[0]] * 2)
-             for f in inp.features]
-    return Overview(view, over, boxes)
+    return [(f["name"], f["kind"], crop_box(cam, f["center"], f["radius"]) - [x0[0], y0[0]] * 2)
+            for f in features]
 
 
 def render_crops(inp: FigureInputs, view: int, size: int, log=print) -> list[tuple[dict, dict]]:

@@ -1,8 +1,10 @@
 """Finding the runs to draw in a `neus-l0 bench` folder.
 
 A bench folder holds ``results.csv`` (one row per run: scene, sampler, budget_s, seed,
-status, ..., run_dir, mesh), ``scenes/<scene>/`` and
-``runs/<scene>__<sampler>__<budget>s__seed<seed>/`` (config.yaml, checkpoints/, mesh.ply).
+status, ..., run_dir, mesh), ``scenes/<scene>/`` (a built-in scene, or a link to a scene
+folder given by path, named after its basename) and
+``runs/<scene>__<sampler>__<budget>s__seed<seed>/`` (config.yaml, checkpoints/, mesh.ply,
+spec.json, whose ``scene_dir`` is the scene folder the run trained on).
 """
 
 from __future__ import annotations
@@ -71,10 +73,30 @@ def _run_name(scene: str, sampler: str, budget: float, seed: int) -> str:
     return f"{scene}__{sampler}__{budget:g}s__seed{seed}"
 
 
+def _scene_folder(bench: Path, scene: str, runs: dict[str, BenchRun]) -> Path:
+    """``bench/scenes/<scene>``, or else the scene folder a run's spec.json names."""
+    import json
+
+    folder = bench / "scenes" / scene
+    if folder.is_dir():
+        return folder
+    for r in runs.values():
+        try:
+            named = json.loads((r.run_dir / "spec.json").read_text(encoding="utf-8"))["scene_dir"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if named and Path(named).is_dir():
+            return Path(named)
+    raise NeusL0Error(f"{folder}: missing (the bench's scene folder, nor named by a run's "
+                      "spec.json)")
+
+
 def select_runs(bench: str | Path, samplers: list[str], scene: str | None = None,
                 budget: float | None = None, seed: int | None = None
                 ) -> tuple[Path, dict[str, BenchRun]]:
     """The scene folder and one finished run per sampler, all on the same scene/budget/seed.
+
+    The scene folder may lack ground truth (a real scene: only cameras, images, masks).
 
     Defaults: scene `DEFAULT_SCENE` if the bench has finished runs of it (else the only
     scene), the largest budget and then the smallest seed that every sampler finished.
@@ -118,9 +140,6 @@ def select_runs(bench: str | Path, samplers: list[str], scene: str | None = None
                           + (f" (asked budget {budget:g})" if budget is not None else "")
                           + (f" (asked seed {seed})" if seed is not None else ""))
     b, sd = max(common, key=lambda k: (k[0], -k[1]))
-    scene_dir = bench / "scenes" / scene
-    if not (scene_dir / "gt_mesh.ply").is_file():
-        raise NeusL0Error(f"{scene_dir}: no gt_mesh.ply (the bench's scene folder is missing)")
     runs = {}
     for s in samplers:
         row = next(r for r in rows if r["sampler"] == s and key(r) == (b, sd))
@@ -131,4 +150,4 @@ def select_runs(bench: str | Path, samplers: list[str], scene: str | None = None
         if not mesh.is_file():
             raise NeusL0Error(f"{mesh}: mesh of the {s} run missing")
         runs[s] = BenchRun(scene, s, b, sd, run_dir, mesh, row)
-    return scene_dir, runs
+    return _scene_folder(bench, scene, runs), runs

@@ -2,7 +2,9 @@
 
 A camera is a NeuS projection ``P`` (3, 4) world -> pixels (pixel centres at integers) and
 an image size. Features are a synthetic scene's (`neus_l0.evaluation.features.load_features`):
-``kind`` (pit | thin), ``name``, ``center`` (3,), ``radius``, ``axis`` (3,) or null.
+``kind`` (pit | thin), ``name``, ``center`` (3,), ``radius``, ``axis`` (3,) or null; on a
+scene without ground truth, the places where the meshes differ most
+(`neus_l0.figures.real.disagreement_regions`, ``kind`` region, no axis).
 """
 
 from __future__ import annotations
@@ -41,6 +43,11 @@ class Camera:
     def centre(self) -> np.ndarray:
         """(3,) camera centre in world units."""
         return decompose_projection(self.P)[1][:3, 3]
+
+    @property
+    def up(self) -> np.ndarray:
+        """(3,) unit world direction that points up (-y) in the image."""
+        return -decompose_projection(self.P)[1][:3, 1]
 
     def scaled(self, factor: float) -> Camera:
         """The same view at `factor` times the resolution (pixel centres stay at integers)."""
@@ -96,8 +103,9 @@ def feature_camera(feature: dict, ref: Camera, size: int = 192,
 
     Pits are seen from above, `PIT_TILT_DEG` off their axis (so the bottom and a wall
     show); thin structures from the side, `THIN_TILT_DEG` above the plane normal to their
-    axis. The eye is as far from the feature as the reference camera; the focal length
-    makes ``margin * radius`` fill half the `size` x `size` image.
+    axis; a feature without an axis straight from the reference camera's side, upright as
+    in the reference camera's image. The eye is as far from the feature as the reference
+    camera; the focal length makes ``margin * radius`` fill half the `size` x `size` image.
     """
     c = feature["center"]
     eye_ref = ref.centre
@@ -105,7 +113,7 @@ def feature_camera(feature: dict, ref: Camera, size: int = 192,
     axis = feature["axis"]
     if axis is None:
         view = to_ref
-        up = np.array([0.0, 0.0, 1.0])
+        up = ref.up
     else:
         axis = _unit(axis)
         if axis @ to_ref < 0:  # the axis points towards the open side / the viewer
@@ -129,7 +137,8 @@ def feature_camera(feature: dict, ref: Camera, size: int = 192,
 
 def overview_camera(cams: list[Camera], features: list[dict]) -> int:
     """Index of the scene camera that sees the most features whole (ties: looks most
-    along the pits' axes, i.e. into them)."""
+    along the pits' axes, i.e. into them; features without an axis, such as regions, count
+    only as seen or not; then the first camera)."""
     centres = np.stack([f["center"] for f in features]) if features else np.zeros((0, 3))
     best, best_score = 0, -np.inf
     for i, cam in enumerate(cams):
