@@ -299,6 +299,7 @@ def test_frontier_pairs_each_budget_with_hvs_at_the_largest(tmp_path, capsys):
     text = (tmp_path / "f" / "summary.md").read_text()
     assert "| l0 | 8+8 | 4 | 90 s | 600 | 90 s | 1.600 | -11.1 (-11.1 .. -11.1) | 4 |" in text
     assert "| hvs | 8+8 | 4 |" in text and "0 of 4" in text
+    assert "| -13.5, 4 of 4, p = 0.12 | 4 of 4 |" in text  # l0 against hvs at 8+8
     assert (tmp_path / "f" / "frontier.png").read_bytes()[:4] == b"\x89PNG"
     assert main(["study", "frontier", "--bench", str(tmp_path / "none"),
                  "--out", str(tmp_path / "g")]) == 2

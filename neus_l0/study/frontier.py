@@ -126,9 +126,9 @@ def summary(runs: list[dict]) -> str:
              "Chamfer in world units, mean over the units; time counts the loop (steps and the "
              "step's compile from a warm cache), as `train.max_seconds` does.\n",
              "| sampler | samples | units | budget | iterations | time at the end | final "
-             "Chamfer | vs reference (%, 95 % CI) | lower in | sign p | reaches the reference "
-             "in | median time to reach |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "Chamfer | vs reference (%, 95 % CI) | lower in | sign p | vs hvs at the same "
+             "samples (%, lower in, p) | reaches the reference in | median time to reach |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for arm in arms:
         rs = [by[(*u, *arm)] for u in units if (*u, *arm) in by]
         c = compare([r["reference"] for r in rs], [r["overall"] for r in rs])
@@ -137,12 +137,19 @@ def summary(runs: list[dict]) -> str:
         med = f"{np.median(reach):.0f} s" if len(hit) * 2 > len(reach) else "–"
         vs = ("(reference)" if arm == ref else
               f"{c['rel']:+.1f} ({c['rel_low']:+.1f} .. {c['rel_high']:+.1f})")
+        same = "–"
+        if arm[0] != "hvs":
+            pairs = [(by[(*u, "hvs", arm[1])]["overall"], by[(*u, *arm)]["overall"])
+                     for u in units if (*u, *arm) in by and (*u, "hvs", arm[1]) in by]
+            if pairs:
+                h = compare(*zip(*pairs))
+                same = f"{h['rel']:+.1f}, {h['better']} of {h['n']}, p = {h['p']:.2g}"
         lines.append(f"| {arm[0]} | {arm[1]} | {len(rs)} | {rs[0]['budget_s']:g} s | "
                      f"{np.mean([r['iterations'] for r in rs]):.0f} | "
                      f"{np.mean([r['end_s'] for r in rs]):.0f} s | "
                      f"{np.mean([r['overall'] for r in rs]):.3f} | {vs} | "
                      f"{c['better'] if arm != ref else '–'} | "
-                     f"{c['p']:.3g} | {len(hit)} of {len(rs)} | {med} |")
+                     f"{c['p']:.3g} | {same} | {len(hit)} of {len(rs)} | {med} |")
     return "\n".join(lines) + "\n"
 
 
