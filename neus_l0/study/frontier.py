@@ -176,7 +176,7 @@ def plot(runs: list[dict], path: str | Path) -> Path:
             c = [np.mean([r["curve"][k][2] for r in rs]) for k in range(n)]
             style = {"8+8": ":", "16+16": "--"}.get(samples, "-")
             ax.plot(t, c, style, marker="o", label=f"{sampler} {samples}")
-        ax.set_title(f"{scene} (mean of {len({r['seed'] for r in runs})} seeds)")
+        ax.set_title(f"{scene} (mean over seeds {sorted({r['seed'] for r in runs})})")
         ax.set_xlabel("training time (s)")
         ax.set_ylabel("Chamfer (world units)")
         ax.grid(alpha=0.3)
