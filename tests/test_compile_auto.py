@@ -47,7 +47,7 @@ def test_inductor_cache_goes_to_ours_unless_the_user_chose_one(monkeypatch, tmp_
 
 def test_saving_and_choice_follow_the_closed_form(one_thread):
     cfg = load_config("demo", ["train.iters=3000", "train.max_seconds=0"])
-    step = ca.EAGER_CPU_S_PER_SAMPLE * 128 * 64
+    step = ca.EAGER_CPU_S_PER_SAMPLE * 128 * (cfg.render.n_samples + cfg.render.n_importance)
     choice = ca.choose_compile(cfg, "cpu")
     assert choice.eager_step_s == pytest.approx(step)
     assert choice.saving_s == pytest.approx(3000 * step * (1 - ca.COMPILED_FRACTION["cpu"]))
@@ -104,7 +104,7 @@ def test_the_step_key_ignores_the_schedule_but_not_the_graph():
     for same in (["train.iters=7"], ["train.lr=1e-3"], ["train.seed=4"],
                  ["train.max_seconds=9"], ["train.compile=true"], ["train.log_every=3"]):
         assert ca.step_key(load_config("demo", same), "cpu") == key, same
-    for other in (["train.batch_size=64"], ["render.n_samples=16"], ["sampler=hvs"],
+    for other in (["train.batch_size=64"], ["render.n_samples=32"], ["sampler=hvs"],
                   ["model.sdf.hidden=32"]):
         assert ca.step_key(load_config("demo", other), "cpu") != key, other
     assert ca.step_key(base, "cuda") != key
