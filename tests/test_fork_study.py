@@ -156,6 +156,19 @@ def test_view_subset_renumbers_images_masks_and_cameras(tiny_scene, tmp_path):
     assert (out / "views.json").stat().st_mtime_ns == stamp
 
 
+def test_view_subset_names_a_missing_camera(tiny_scene, tmp_path):
+    import shutil
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene, scene)
+    cams = dict(np.load(scene / "cameras_sphere.npz"))
+    del cams["world_mat_3"]
+    np.savez(scene / "cameras_sphere.npz", **cams)
+    with pytest.raises(NeusL0Error, match=r"cameras_sphere.npz: no world_mat_3 for image 003"):
+        write_view_subset(scene, [1, 3], tmp_path / "sub")
+    assert not (tmp_path / "sub").exists() and not (tmp_path / "sub.tmp").exists()
+
+
 def test_the_commands_fork_one_hvs_run(tmp_path):
     spec = ForkSpec(tmp_path, ["demo"], base_iters=300, arm_iters=100, threads=2,
                     overrides=["train.lr=1e-3"])
@@ -241,6 +254,12 @@ def test_fork_study_end_to_end(tiny_scene, tmp_path, small_overrides, capsys):
     stamps = {p: p.stat().st_mtime_ns for p in run.glob("*/score.json")}
     assert main(args) == 0
     assert {p: p.stat().st_mtime_ns for p in run.glob("*/score.json")} == stamps
+    # other scoring settings: scored again, not trained again
+    ckpts = {p: p.stat().st_mtime_ns for p in run.glob("*/checkpoints/*.pt")}
+    assert main([*args, "--resolution", "40"]) == 0
+    assert all(json.loads(p.read_text())["scoring"]["resolution"] == 40
+               for p in run.glob("*/score.json"))
+    assert {p: p.stat().st_mtime_ns for p in run.glob("*/checkpoints/*.pt")} == ckpts
     assert set(ARMS) >= {"hvs", "l0"}
 
 
@@ -304,3 +323,16 @@ def test_frontier_pairs_each_budget_with_hvs_at_the_largest(tmp_path, capsys):
     assert main(["study", "frontier", "--bench", str(tmp_path / "none"),
                  "--out", str(tmp_path / "g")]) == 2
     assert "not a bench folder" in capsys.readouterr().err
+
+
+def test_fork_study_refuses_a_scene_without_ground_truth(tiny_scene, tmp_path, capsys):
+    import shutil
+
+    scene = tmp_path / "real"
+    for part in ("image", "mask"):
+        shutil.copytree(tiny_scene / part, scene / part)
+    shutil.copy2(tiny_scene / "cameras_sphere.npz", scene)
+    assert main(["study", "fork", "--out", str(tmp_path / "f"), "--scenes",
+                 f"{tiny_scene},{scene}", "--seeds", "0"]) == 2
+    assert "no gt_mesh.ply" in capsys.readouterr().err
+    assert not (tmp_path / "f" / "runs").exists()  # the good first scene did not train

@@ -132,6 +132,9 @@ def write_view_subset(scene_dir: Path, views: Sequence[int], out: Path) -> Path:
 
     Returns:
         `out`.
+
+    Raises:
+        NeusL0Error: a view without its camera in ``cameras_sphere.npz``.
     """
     done = out / "views.json"
     if done.is_file() and json.loads(done.read_text())["views"] == list(views):
@@ -152,6 +155,10 @@ def write_view_subset(scene_dir: Path, views: Sequence[int], out: Path) -> Path:
             (tmp / "mask").mkdir(exist_ok=True)
             shutil.copy2(masks[number], tmp / "mask" / f"{new:03d}{masks[number].suffix}")
         for key in ("world_mat", "scale_mat"):
+            if f"{key}_{number}" not in cams.files:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise NeusL0Error(f"{scene_dir / 'cameras_sphere.npz'}: no {key}_{number} "
+                                  f"for image {image.name}")
             arrays[f"{key}_{new}"] = cams[f"{key}_{number}"]
     np.savez(tmp / "cameras_sphere.npz", **arrays)
     (tmp / "views.json").write_text(json.dumps({"source": str(scene_dir),
@@ -242,13 +249,15 @@ def score_run(run_dir: Path, scene_dir: Path, spec: ForkSpec) -> dict:
 def _scored(run_dir: Path, scene_dir: Path, spec: ForkSpec, iteration: int,
             unit: dict) -> dict:
     """`score_run`'s result with the `unit` (scene, seed, arm) ahead, kept in
-    ``score.json`` (re-used when its iteration matches)."""
+    ``score.json`` (re-used when its iteration and the scoring settings match)."""
     path = run_dir / "score.json"
+    how = {k: getattr(spec, k) for k in ("resolution", "eval_density", "sample_rays",
+                                         "psnr_pixels", "holdout")}
     if path.is_file():
         old = json.loads(path.read_text())
-        if old.get("iteration") == iteration:
+        if old.get("iteration") == iteration and old.get("scoring") == how:
             return old
-    out = {**unit, **score_run(run_dir, scene_dir, spec)}
+    out = {**unit, **score_run(run_dir, scene_dir, spec), "scoring": how}
     if out["iteration"] != iteration:
         raise NeusL0Error(f"{run_dir}: newest checkpoint at iteration {out['iteration']}, "
                           f"expected {iteration}")
@@ -297,11 +306,12 @@ def run_study(spec: ForkSpec, log: Callable[[str], None] = print) -> list[dict]:
     spec.check()
     out = Path(spec.out_dir)
     rows: list[dict] = []
-    for entry in spec.scenes:
-        scene, scene_dir = prepare_scene(entry, out, spec.views, spec.width, spec.height)
+    scenes = [prepare_scene(e, out, spec.views, spec.width, spec.height) for e in spec.scenes]
+    for _, scene_dir in scenes:  # every scene checked before the first run trains
         if not (scene_dir / "gt_mesh.ply").is_file():
             raise NeusL0Error(f"{scene_dir}: no gt_mesh.ply (the study needs a synthetic "
                               "scene's ground truth: neus-l0 synth)")
+    for scene, scene_dir in scenes:
         train_views, _ = split_views(len(indexed_files(scene_dir / "image")), spec.holdout)
         train_dir = write_view_subset(scene_dir, train_views,
                                       out / "scenes" / f"{scene}__train")
