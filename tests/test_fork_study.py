@@ -220,6 +220,9 @@ def test_bench_snapshot_marks_and_settings():
     plain = SweepSpec("d", [], [], [], conf="demo")
     assert "snapshots" not in plain.settings({})  # folders from before still match
     assert SweepSpec("d", [], [], [], conf="demo", snapshots=4).settings({})["snapshots"] == 4
+    run = SweepSpec("d", [], [], [], conf="demo", snapshots=3).run_spec(
+        "demo", "scene", "l0", 90.0, 0, {})
+    assert run.snapshots == [30.0, 60.0]  # each run of the sweep checkpoints at its marks
 
 
 def test_bench_refuses_negative_snapshots(tmp_path, capsys):
