@@ -24,7 +24,7 @@ def tiny_scene(tmp_path_factory):
 
     Built once per test session (a couple of seconds); treat it as read-only.
     """
-    from neus_l0.data.synthetic import make_scene
+    from neus_l0.synthetic.scene import make_scene
 
     out = tmp_path_factory.mktemp("tiny_scene") / "demo"
     return make_scene("demo", out, views=8, width=64, height=48, seed=0, gt_voxel=4.0,

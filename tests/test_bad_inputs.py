@@ -29,12 +29,12 @@ import pytest
 import torch
 import trimesh
 
-import neus_l0.data.synthetic as synthetic
+import neus_l0.synthetic.scene as synthetic
 from neus_l0.cli import main
-from neus_l0.data.scene import load_scene
 from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation import score
 from neus_l0.evaluation.cull import dilate_mask
+from neus_l0.formats.neus import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -671,7 +671,7 @@ def test_bench_on_ray_cancels_its_tasks_on_a_signal(tiny_scene, tmp_path, capsys
 
 def test_a_second_ctrl_c_under_ray_still_cancels_the_tasks(monkeypatch):
     """KeyboardInterrupt while waiting (a second Ctrl-C): every task cancelled, then raised."""
-    from neus_l0.bench.ray_backend import run_with_ray
+    from neus_l0.experiments.ray_backend import run_with_ray
 
     class Spec:
         device, threads, name = "cpu", 1, "a"
@@ -688,7 +688,7 @@ def test_a_second_ctrl_c_under_ray_still_cancels_the_tasks(monkeypatch):
 
 def test_ray_rows_come_back_as_tasks_finish():
     """Without a signal, the polling loop hands every task's row on."""
-    from neus_l0.bench.ray_backend import run_with_ray
+    from neus_l0.experiments.ray_backend import run_with_ray
     from neus_l0.train.signals import StopOnSignal
 
     class Spec:

@@ -14,20 +14,21 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from neus_l0.bench.holdout import split_views, subset_scene
-from neus_l0.bench.results import COLUMNS, DETERMINISTIC, NUMERIC
-from neus_l0.bench.sample_distance import (
-    SampleDistanceHook,
+from neus_l0.cli import main
+from neus_l0.config.load import load_config
+from neus_l0.data.rays import pixel_grid, pixel_rays
+from neus_l0.data.scene import Scene
+from neus_l0.data.split import split_views, subset_scene
+from neus_l0.errors import NeusL0Error
+from neus_l0.evaluation.sample_distance import (
     SurfaceDistance,
     fine_points_world,
     object_rays,
 )
-from neus_l0.bench.sweep import SweepSpec, default_conf, run_sweep
-from neus_l0.cli import main
-from neus_l0.config.load import load_config
-from neus_l0.data.rays import pixel_grid, pixel_rays
-from neus_l0.data.scene import Scene, load_scene
-from neus_l0.errors import NeusL0Error
+from neus_l0.experiments.results import COLUMNS, DETERMINISTIC, NUMERIC
+from neus_l0.experiments.sample_hook import SampleDistanceHook
+from neus_l0.experiments.sweep import SweepSpec, default_conf, run_sweep
+from neus_l0.formats.neus import load_scene
 
 #: A tiny network and schedule; `train.iters` ends every run long before its budget, so the
 #: rows are deterministic (same iterations) and comparable between backends.
@@ -88,8 +89,8 @@ def test_sweep_writes_results_with_finite_numbers(sweep):
 
 
 def test_runs_record_their_last_step_and_the_psnr_stride(sweep, tiny_scene):
-    from neus_l0.bench.progress import read_step
-    from neus_l0.bench.runner import psnr_stride
+    from neus_l0.experiments.progress import read_step
+    from neus_l0.experiments.runner import psnr_stride
 
     out, _ = sweep
     scene = load_scene(tiny_scene)
@@ -181,7 +182,7 @@ def test_ray_backend_gives_the_rows_of_the_local_one(sweep, tiny_scene, tmp_path
 
 
 def test_psnr_stride_bounds_the_pixels():
-    from neus_l0.bench.runner import psnr_stride
+    from neus_l0.experiments.runner import psnr_stride
 
     # 400x300 at stride 3 is 134x100 = 13400 pixels; stride 4 gives 100x75 = 7500
     assert psnr_stride(300, 400, 2, 10000) == 4
@@ -195,7 +196,7 @@ def test_psnr_stride_bounds_the_pixels():
 @settings(max_examples=200, deadline=None)
 @given(st.integers(1, 2000), st.integers(1, 2000), st.integers(0, 8), st.integers(1, 10**6))
 def test_psnr_stride_is_the_smallest_within_budget(h, w, base, pixels):
-    from neus_l0.bench.runner import psnr_stride
+    from neus_l0.experiments.runner import psnr_stride
 
     s = psnr_stride(h, w, base, pixels)
     assert s >= max(base, 1)
@@ -217,7 +218,7 @@ def test_step_reporter_throttles_and_the_display_follows(tmp_path):
 
     from tqdm import tqdm
 
-    from neus_l0.bench.progress import StepDisplay, StepReporter, read_step
+    from neus_l0.experiments.progress import StepDisplay, StepReporter, read_step
 
     path = tmp_path / "progress.json"
     assert read_step(path) is None
@@ -249,7 +250,7 @@ def test_wait_watches_the_run_and_kills_it_at_the_timeout():
     import subprocess
     import sys
 
-    from neus_l0.bench.runner import _wait
+    from neus_l0.experiments.runner import _wait
 
     calls = []
     proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(1.2)"])
@@ -405,7 +406,7 @@ def test_fine_points_world_uses_the_scale_mat():
 
 
 def test_paired_differences_exact():
-    from neus_l0.bench.plots import paired_differences
+    from neus_l0.experiments.plots import paired_differences
 
     def row(sampler, seed, overall, its, budget=60.0, scene="s"):
         return {"scene": scene, "sampler": sampler, "budget_s": budget, "seed": seed,
@@ -422,7 +423,7 @@ def test_paired_differences_exact():
 
 
 def test_iteration_matched_effect_recovers_an_exact_offset():
-    from neus_l0.bench.plots import iteration_matched_effect
+    from neus_l0.experiments.plots import iteration_matched_effect
 
     rows = []
     for scene, a, b in (("s1", 20.0, -1.5), ("s2", 12.0, -0.8)):

@@ -1,4 +1,4 @@
-"""`neus_l0.bench.arms` and `tools/bench_fast_vs_neus.py`: the verdict on hand-made curves,
+"""`neus_l0.experiments.arms` and `tools/bench_fast_vs_neus.py`: the verdict on hand-made curves,
 and one end-to-end run of the tool on a tiny scene."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from neus_l0.bench import arms
-from neus_l0.bench.runner import RunSpec, read_spec
+from neus_l0.experiments import arms
+from neus_l0.experiments.runner import RunSpec, read_spec
 
 TOOL = Path(__file__).resolve().parents[1] / "tools" / "bench_fast_vs_neus.py"
 

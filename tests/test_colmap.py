@@ -11,9 +11,9 @@ import pytest
 
 from neus_l0.cli import main
 from neus_l0.data.cameras import decompose_projection
-from neus_l0.data.scene import load_scene, validate_scene
 from neus_l0.errors import NeusL0Error
-from neus_l0.photos.compare import compare_to_truth
+from neus_l0.experiments.photos_compare import compare_to_truth
+from neus_l0.formats.neus import load_scene, validate_scene
 from neus_l0.photos.sfm import check_models
 from neus_l0.photos.sparse_io import SparseModel, read_model, write_text_model
 
@@ -21,7 +21,7 @@ from neus_l0.photos.sparse_io import SparseModel, read_model, write_text_model
 @pytest.fixture(scope="module")
 def photo_scene(tmp_path_factory):
     """A synthetic demo scene SfM registers reliably: 30 views at 400x300 (~25 s)."""
-    from neus_l0.data.synthetic import make_scene
+    from neus_l0.synthetic.scene import make_scene
 
     out = tmp_path_factory.mktemp("photos") / "demo"
     return make_scene("demo", out, views=30, width=400, height=300, seed=0, gt_voxel=3.0,

@@ -7,9 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from neus_l0.data.cameras import axes_convergence
-from neus_l0.photos.align import pose_errors, rotation_angle_deg, umeyama
-from neus_l0.photos.preview import sphere_outline
-from neus_l0.photos.sphere import choose_sphere
+from neus_l0.experiments.photos_align import pose_errors, rotation_angle_deg, umeyama
+from neus_l0.formats.preview import sphere_outline
+from neus_l0.formats.sphere import choose_sphere
 
 
 def _random_sim(rng):

@@ -10,9 +10,9 @@ import pytest
 import torch
 import yaml
 
-from neus_l0.commands.demo import _check_same_settings
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.errors import ConfigError
+from neus_l0.pipelines.demo import check_same_settings as _check_same_settings
 from neus_l0.train import cache_folder as cf
 from neus_l0.train import compile_auto as ca
 from neus_l0.train.compile import compiled_step

@@ -69,7 +69,7 @@ def test_the_step_with_looked_up_spans_has_no_graph_break(sphere_scene, tmp_path
     scene = sphere_scene(tmp_path / "s")
     cfg = load_config("demo", ANALYTIC)
     model = make_model(cfg)
-    bounds = static_bounds(scene, cfg, tmp_path / "run")
+    bounds = static_bounds(scene, cfg, tmp_path / "run" / "hull.pt")
     pool = reachable_pixels(scene, cfg.render, bounds)
     assert bounds and pool.spans is not None
     inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), pool)

@@ -306,9 +306,9 @@ def test_synth_scene_gt_mesh_scores_zero_against_itself(tmp_path, capsys):
     """`neus-l0 synth`'s own gt_mesh.ply against its scene: zero, point-to-mesh."""
     import inspect
 
-    synthetic = pytest.importorskip("neus_l0.data.synthetic")
+    synthetic = pytest.importorskip("neus_l0.synthetic.scene")
     if not hasattr(synthetic, "make_scene"):
-        pytest.skip("neus_l0.data.synthetic.make_scene is not there yet")
+        pytest.skip("neus_l0.synthetic.scene.make_scene is not there yet")
     params = inspect.signature(synthetic.make_scene).parameters
     kw = {"progress": False} if "progress" in params else {}
     root = Path(synthetic.make_scene("demo", tmp_path / "demo", views=8, width=80, height=60,

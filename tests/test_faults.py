@@ -12,8 +12,8 @@ import torch
 
 from neus_l0.cli import main
 from neus_l0.config.load import load_config
-from neus_l0.data.scene import load_scene, validate_scene
 from neus_l0.errors import NeusL0Error, SceneError
+from neus_l0.formats.neus import load_scene, validate_scene
 from neus_l0.mesh.memory import (
     BYTES_PER_FACE,
     EVAL_BYTES_PER_POINT,
@@ -128,8 +128,8 @@ def test_estimate_covers_the_measured_sparse_peak():
     """tracemalloc peak of the sparse path on a sphere of about the assumed area."""
     import tracemalloc
 
-    from neus_l0.data.shapes import Sphere
     from neus_l0.mesh.extract import sparse_marching_cubes
+    from neus_l0.synthetic.shapes import Sphere
 
     r = 0.7  # area 4 pi r^2 = 6.16, the estimator assumes 2 pi = 6.28
     R = 160

@@ -30,10 +30,10 @@ def _write_results(root, rows):
 def bench(tmp_path_factory):
     """A bench folder: the demo scene (6 views, 80x60) and two runs of 2 iterations each."""
     from neus_l0.config.load import load_config
-    from neus_l0.data.scene import load_scene
-    from neus_l0.data.synthetic import make_scene
+    from neus_l0.formats.neus import load_scene
     from neus_l0.mesh.extract import export_mesh, extract_mesh
     from neus_l0.run.checkpoints import load_trained_model
+    from neus_l0.synthetic.scene import make_scene
     from neus_l0.train.loop import train
 
     root = tmp_path_factory.mktemp("bench")
@@ -122,8 +122,8 @@ def test_select_runs_defaults_and_paths(bench):
 
 
 def test_raster_render_depth_agrees_with_gt_depth(bench):
+    from neus_l0.figures.raster import raster_render
     from neus_l0.figures.views import scene_cameras
-    from neus_l0.mesh.preview import raster_render
 
     scene_dir = bench / "scenes" / "demo"
     cam = scene_cameras(scene_dir)[0]

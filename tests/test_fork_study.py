@@ -13,14 +13,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from neus_l0.bench.sweep import SweepSpec, snapshot_marks
 from neus_l0.cli import main
 from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.features import feature_errors, kind_errors, load_features
 from neus_l0.evaluation.paired import compare, sign_test_p, t_interval
 from neus_l0.evaluation.score import score_mesh
-from neus_l0.study.fork import ARMS, ForkSpec, collect_rows, train_command, write_view_subset
-from neus_l0.study.fork_report import paired_rows, summary, to_csv
+from neus_l0.experiments.fork import ARMS, ForkSpec, collect_rows, train_command, write_view_subset
+from neus_l0.experiments.fork_report import paired_rows, summary, to_csv
+from neus_l0.experiments.sweep import SweepSpec, snapshot_marks
 
 # ------------------------------------------------------------------------------------------
 # Feature errors
@@ -271,7 +271,7 @@ def test_fork_study_end_to_end(tiny_scene, tmp_path, small_overrides, capsys):
 
 
 def test_time_to_reach_interpolates_between_snapshots():
-    from neus_l0.study.frontier import time_to_reach
+    from neus_l0.experiments.frontier import time_to_reach
 
     curve = [(30.0, 100, 4.0), (60.0, 200, 2.0), (90.0, 300, 1.5)]
     assert time_to_reach(curve, 3.0) == pytest.approx(45.0)
@@ -300,7 +300,7 @@ def _bench_folder(root, n, runs):
 
 
 def test_frontier_pairs_each_budget_with_hvs_at_the_largest(tmp_path, capsys):
-    from neus_l0.study.frontier import frontier_rows, read_bench, reference_arm
+    from neus_l0.experiments.frontier import frontier_rows, read_bench, reference_arm
 
     big = _bench_folder(tmp_path / "b32", 32, [
         (s, k, "hvs", [(30, 100, 3.0), (60, 200, 2.0), (90, 300, 1.8)])

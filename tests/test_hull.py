@@ -27,7 +27,7 @@ BUNNY = Path("/work/shared/meshes/bunny.obj")
 
 def _make(tmp_path_factory, name: str, views: int = 16, width: int = 100,
           height: int = 75) -> Path:
-    from neus_l0.data.synthetic import make_scene
+    from neus_l0.synthetic.scene import make_scene
 
     out = tmp_path_factory.mktemp("hull") / Path(name).stem
     return make_scene(name, out, views=views, width=width, height=height, seed=0,
@@ -37,7 +37,7 @@ def _make(tmp_path_factory, name: str, views: int = 16, width: int = 100,
 @pytest.fixture(scope="session")
 def demo_scene(tmp_path_factory):
     """The built-in demo, 16 views at 100x75: folder and loaded `Scene`."""
-    from neus_l0.data.scene import load_scene
+    from neus_l0.formats.neus import load_scene
 
     root = _make(tmp_path_factory, "demo")
     return root, load_scene(root)
@@ -196,7 +196,7 @@ def test_demo_truth_inside_default_hull(demo_scene):
 
 @pytest.mark.slow
 def test_pits_and_thin_truth_inside_default_hull(tmp_path_factory):
-    from neus_l0.data.scene import load_scene
+    from neus_l0.formats.neus import load_scene
 
     root = _make(tmp_path_factory, "pits-and-thin")
     scene = load_scene(root)
@@ -217,7 +217,7 @@ def test_pits_and_thin_truth_inside_default_hull(tmp_path_factory):
 def test_bunny_truth_inside_default_hull(tmp_path_factory):
     if not BUNNY.is_file():
         pytest.skip(f"{BUNNY} is not here (development machines only)")
-    from neus_l0.data.scene import load_scene
+    from neus_l0.formats.neus import load_scene
 
     # at 200x150 the ears are thin enough that 2 px of erosion loses 0.1 % (measured 99.899 %)
     root = _make(tmp_path_factory, str(BUNNY), width=300, height=225)
@@ -314,8 +314,8 @@ def test_ray_bounds_never_cut_the_true_surface(demo_scene, demo_hull):
     """Rays through random pixels: every sign change of the true SDF along the ray inside
     [near, far] lies in [lo, hi]; rays that miss get (near, far) and hits False."""
     from neus_l0.data.rays import random_rays
-    from neus_l0.data.shapes import Translated, builtin_shape
-    from neus_l0.data.synthetic import WORLD_OFFSET
+    from neus_l0.synthetic.scene import WORLD_OFFSET
+    from neus_l0.synthetic.shapes import Translated, builtin_shape
 
     _, scene = demo_scene
     sdf = Translated(builtin_shape("demo").sdf, WORLD_OFFSET)

@@ -93,7 +93,7 @@ def test_options_are_checked():
 def test_mesh_command_flags(tmp_path, capsys, monkeypatch):
     import neus_l0.mesh.from_run
     from neus_l0.cli import main
-    from neus_l0.data.shapes import Sphere
+    from neus_l0.synthetic.shapes import Sphere
 
     class _Sdf(__import__("torch").nn.Module):
         def sdf(self, p):

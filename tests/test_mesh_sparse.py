@@ -11,7 +11,6 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from neus_l0.data.cameras import to_world
-from neus_l0.data.shapes import Box, CappedCone, Difference, Sphere, Union, builtin_shape
 from neus_l0.errors import NeusL0Error
 from neus_l0.mesh.extract import (
     SPARSE_ABOVE,
@@ -21,6 +20,7 @@ from neus_l0.mesh.extract import (
     sdf_grid,
     sparse_marching_cubes,
 )
+from neus_l0.synthetic.shapes import Box, CappedCone, Difference, Sphere, Union, builtin_shape
 
 
 def canonical(V, F, step):
@@ -228,7 +228,7 @@ def test_sparse_memory_is_far_below_the_dense_volume():
 def test_sparse_1024_sphere_fits_in_memory():
     code = (
         "import resource, torch, trimesh\n"
-        "from neus_l0.data.shapes import Sphere\n"
+        "from neus_l0.synthetic.shapes import Sphere\n"
         "from neus_l0.mesh import sparse_marching_cubes\n"
         "V, F, st = sparse_marching_cubes(Sphere((0.0, 0.0, 0.0), 0.5), 1024)\n"
         "m = trimesh.Trimesh(V, F, process=False)\n"

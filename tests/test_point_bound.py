@@ -112,9 +112,9 @@ def test_run_uses_the_box_only_when_asked_and_without_masks(tmp_path):
     scene.root.mkdir(parents=True)
     unit = _ellipsoid_surface(200, 6, radii=(0.5, 0.5, 0.5))
     write_points(scene.root / POINTS_FILE, unit * sm[0, 0] + sm[:3, 3], np.full(200, 3))
-    assert static_bounds(scene, load_config("womask"), tmp_path / "run") == ()
+    assert static_bounds(scene, load_config("womask"), tmp_path / "run" / "hull.pt") == ()
     on = load_config("womask", ["render.point_bound.enabled=true"])
-    (box,) = static_bounds(scene, on, tmp_path / "run")
+    (box,) = static_bounds(scene, on, tmp_path / "run" / "hull.pt")
     assert isinstance(box, PointBound) and box.n_points == 200
     assert not (tmp_path / "run" / "hull.pt").exists()
 

@@ -11,8 +11,8 @@ import pytest
 from neus_l0.bounds.hull import hull_from_scene
 from neus_l0.bounds.static import CUT_SHELL, shell_fraction
 from neus_l0.config.load import load_config
-from neus_l0.data.scene import load_scene
 from neus_l0.errors import NeusL0Error, SceneError
+from neus_l0.formats.neus import load_scene
 from neus_l0.train.loop import train
 from neus_l0.train.preflight import check_writable, scene_fingerprint
 
@@ -74,7 +74,7 @@ def test_object_arrays_in_the_camera_file_are_refused(scene_copy):
 
 def test_an_object_the_sphere_cuts_is_refused_before_training(tmp_path):
     """The demo object with its sphere halved: the hull fills the sphere's outer shell."""
-    from neus_l0.data.synthetic import make_scene
+    from neus_l0.synthetic.scene import make_scene
 
     root = make_scene("demo", tmp_path / "demo", views=12, width=120, height=90, seed=0,
                       gt_voxel=4.0, point_spacing=2.0, progress=False)

@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 import torch
 
-from neus_l0.bench.holdout import split_views
 from neus_l0.commands.render import add_parser, run
 from neus_l0.config.load import load_config
 from neus_l0.data.rays import pixel_rays
-from neus_l0.data.scene import load_scene
+from neus_l0.data.split import split_views
 from neus_l0.errors import NeusL0Error
+from neus_l0.formats.neus import load_scene
+from neus_l0.pipelines.render_run import RenderOptions, check_video, render_run, select_views
 from neus_l0.render.cameras import (
     camera_elevations,
     depth_range,
@@ -26,7 +27,6 @@ from neus_l0.render.cameras import (
     resize_intrinsics,
     up_direction,
 )
-from neus_l0.render.from_run import RenderOptions, check_video, render_run, select_views
 from neus_l0.render.views import MSE_FLOOR, mean_metrics, psnr, view_metrics
 from neus_l0.train.loop import train
 

@@ -7,7 +7,6 @@ import torch
 
 from neus_l0.bounds.sphere import near_far_from_sphere
 from neus_l0.config.schema import SAMPLERS, SamplerConfig
-from neus_l0.data.shapes import Sphere
 from neus_l0.render import volume as rendering
 from neus_l0.sampling.kernels import sample_l0, sample_l0_sections
 from neus_l0.sampling.upsample import (
@@ -20,6 +19,7 @@ from neus_l0.sampling.upsample import (
     up_sample,
     upsample_section_weights,
 )
+from neus_l0.synthetic.shapes import Sphere
 
 
 def _sections(B: int = 6, N: int = 17, seed: int = 0) -> Sections:

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from neus_l0.cli import main
-from neus_l0.data.scene import load_scene
 from neus_l0.errors import SceneError
+from neus_l0.formats.neus import load_scene
 
 
 @pytest.fixture()

@@ -15,7 +15,7 @@ import trimesh
 
 from neus_l0.data.cameras import camera_z_depth, decompose_projection
 from neus_l0.data.rays import image_rays, pixel_rays, random_rays
-from neus_l0.data.scene import load_scene, validate_scene
+from neus_l0.formats.neus import load_scene, validate_scene
 
 DTU = Path(__file__).resolve().parents[2] / "shared" / "data" / "dtu_scan65"
 

@@ -234,8 +234,8 @@ def test_training_steps_match_autograd_end_to_end(tiny_scene):
     """The demo config's training step (one backward for `analytic`) gives autograd's
     losses step after step from the same state; finite differences stay close at first."""
     from neus_l0.config.load import load_config
-    from neus_l0.data.scene import load_scene
     from neus_l0.fields.model import make_model
+    from neus_l0.formats.neus import load_scene
     from neus_l0.train.step import make_optimizer, train_step
 
     scene = load_scene(tiny_scene)

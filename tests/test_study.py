@@ -8,8 +8,15 @@ import pytest
 import torch
 
 from neus_l0.cli import main
-from neus_l0.data.shapes import Sphere
-from neus_l0.study.sampling import FINAL_S, VARIANTS, Case, _sphere_rays, dense_reference, first_hit
+from neus_l0.experiments.oracle import (
+    FINAL_S,
+    VARIANTS,
+    Case,
+    _sphere_rays,
+    dense_reference,
+    first_hit,
+)
+from neus_l0.synthetic.shapes import Sphere
 
 
 def _sphere_case(B: int = 24) -> tuple[Case, torch.Tensor]:

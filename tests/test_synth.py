@@ -11,9 +11,9 @@ import trimesh
 
 from neus_l0.cli import main
 from neus_l0.data.cameras import camera_z_depth
-from neus_l0.data.scene import load_scene, validate_scene
-from neus_l0.data.shapes import Translated, builtin_shape, project_to_surface
-from neus_l0.data.synthetic import WORLD_OFFSET, make_scene
+from neus_l0.formats.neus import load_scene, validate_scene
+from neus_l0.synthetic.scene import WORLD_OFFSET, make_scene
+from neus_l0.synthetic.shapes import Translated, builtin_shape, project_to_surface
 
 
 def _world_sdf(name):

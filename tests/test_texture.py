@@ -121,7 +121,7 @@ def test_mesh_command_texture(tmp_path, capsys, monkeypatch):
 
     import neus_l0.mesh.from_run
     from neus_l0.cli import main
-    from neus_l0.data.shapes import Sphere
+    from neus_l0.synthetic.shapes import Sphere
 
     class _Sdf(torch.nn.Module):
         def sdf(self, p):

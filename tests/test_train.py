@@ -265,7 +265,7 @@ def test_cli_errors_are_one_line(scene, tmp_path, capsys):
 
 
 def _tiny_demo(small, monkeypatch, tmp_path, iters):
-    import neus_l0.commands.demo as demo
+    import neus_l0.pipelines.demo as demo
     from neus_l0.cli import main
 
     monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
@@ -289,7 +289,7 @@ def test_demo_rerun_with_another_sampler_is_refused_not_mislabelled(small, monke
                                                                     tmp_path, capsys):
     """Re-running the demo into the same --out resumes its run: with sampler=hvs instead of
     the run's l0 it would train on and label an l0 run hvs (issue #27)."""
-    import neus_l0.commands.demo as demo
+    import neus_l0.pipelines.demo as demo
     from neus_l0.cli import main
 
     _tiny_demo(small, monkeypatch, tmp_path, 3)

@@ -22,10 +22,10 @@ import trimesh
 
 from neus_l0.cli import main
 from neus_l0.data.rays import pixel_grid, pixel_rays
-from neus_l0.data.scene import load_scene
-from neus_l0.data.transforms import load_views, read_transforms
 from neus_l0.errors import SceneError
+from neus_l0.formats.neus import load_scene
 from neus_l0.formats.open import open_scene
+from neus_l0.formats.transforms import load_views, read_transforms
 
 TOOL = Path(__file__).resolve().parent.parent / "tools" / "export_transforms.py"
 MOVE = ["--rotate", "40", "--scale", "0.01", "--translate", "1", "2", "-3"]

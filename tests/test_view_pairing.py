@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from neus_l0.cli import main
-from neus_l0.data.scene import load_scene
 from neus_l0.data.views import view_index
 from neus_l0.errors import SceneError
+from neus_l0.formats.neus import load_scene
 
 
 @pytest.mark.parametrize("name, index", [

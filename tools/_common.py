@@ -15,8 +15,9 @@ from pathlib import Path
 
 import torch
 
-from neus_l0.data.scene import Scene, load_scene
-from neus_l0.data.synthetic import make_scene
+from neus_l0.data.scene import Scene
+from neus_l0.formats.neus import load_scene
+from neus_l0.synthetic.scene import make_scene
 
 
 def small_demo_scene(folder: str | Path, views: int, width: int, height: int,

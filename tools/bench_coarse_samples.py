@@ -20,11 +20,11 @@ import argparse
 import numpy as np
 import torch
 
-from neus_l0.bench.sample_distance import SurfaceDistance, object_rays
 from neus_l0.bounds.hull import hull_from_scene
 from neus_l0.bounds.spans import ray_bounds
 from neus_l0.config.schema import RenderConfig
-from neus_l0.data.scene import load_scene
+from neus_l0.evaluation.sample_distance import SurfaceDistance, object_rays
+from neus_l0.formats.neus import load_scene
 from neus_l0.render.volume import coarse_z_vals
 
 

@@ -30,11 +30,11 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(args.threads)
 
-    from neus_l0.commands.demo import DEMO_SCENE
     from neus_l0.config.load import load_config
-    from neus_l0.data.scene import load_scene
-    from neus_l0.data.synthetic import make_scene
     from neus_l0.fields.model import make_model
+    from neus_l0.formats.neus import load_scene
+    from neus_l0.pipelines.demo import DEMO_SCENE
+    from neus_l0.synthetic.scene import make_scene
     from neus_l0.train.step import make_optimizer, train_step
 
     if not (Path(args.scene) / "scene.json").is_file():

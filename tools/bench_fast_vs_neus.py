@@ -10,7 +10,7 @@ Usage:
 
 Per scene (a built-in name, synthesised into DIR/scenes/ at --views/--width/--height, or a
 scene folder such as one made by ``neus-l0 synth MESH DIR``), two runs one after the other,
-each in its own process (`neus_l0.bench.runner`): the ``fast`` arm, then the ``neus`` arm.
+each in its own process (`neus_l0.experiments.runner`): the ``fast`` arm, then the ``neus`` arm.
 Each trains for its wall-clock budget (``train.max_seconds``: the training loop only) with
 snapshot checkpoints at budget * k / n (k = 1..n, n = --snapshots-per-run); after training,
 each snapshot's mesh is extracted at --resolution and scored, so each arm has a curve of
@@ -39,11 +39,11 @@ import sys
 from pathlib import Path
 
 from neus_l0.atomic import atomic_write_json, atomic_write_text
-from neus_l0.bench import arms
-from neus_l0.bench.results import collect_rows, write_results
-from neus_l0.bench.runner import BENCH_OVERRIDES, RunSpec, run_in_subprocess
-from neus_l0.bench.sweep import is_done, prepare_scene
 from neus_l0.errors import NeusL0Error
+from neus_l0.experiments import arms
+from neus_l0.experiments.results import collect_rows, write_results
+from neus_l0.experiments.runner import BENCH_OVERRIDES, RunSpec, run_in_subprocess
+from neus_l0.experiments.sweep import is_done, prepare_scene
 
 #: The two arms, in the order they run on each scene.
 ARMS = ("fast", "neus")

@@ -26,8 +26,8 @@ import torch.nn.functional as F
 
 from neus_l0.bounds.hull import DEFAULT_MARGIN_PX, carve_hull, hull_from_scene
 from neus_l0.data.rays import random_rays
-from neus_l0.data.scene import load_scene
 from neus_l0.evaluation.io import load_points
+from neus_l0.formats.neus import load_scene
 
 
 def erode(masks: torch.Tensor, px: int) -> torch.Tensor:

@@ -38,17 +38,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from neus_l0.bench.sample_distance import SurfaceDistance, object_rays
 from neus_l0.bounds.occupancy import OccupancyGrid
 from neus_l0.bounds.spans import ray_bounds
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import OccupancyConfig, RenderConfig
-from neus_l0.data.scene import load_scene
-from neus_l0.data.synthetic import make_scene
 from neus_l0.evaluation.io import load_mesh, load_points
+from neus_l0.evaluation.sample_distance import SurfaceDistance, object_rays
 from neus_l0.fields.model import make_model
+from neus_l0.formats.neus import load_scene
 from neus_l0.render.volume import coarse_z_vals
 from neus_l0.sampling.upsample import build_sampler
+from neus_l0.synthetic.scene import make_scene
 from neus_l0.train.step import StepSetup, make_optimizer, train_step
 
 WOMASK = ["train.mask_weight=0", "render.n_outside=16", "model.background.hidden=64",

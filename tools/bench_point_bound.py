@@ -24,15 +24,15 @@ import argparse
 import numpy as np
 import torch
 
-from neus_l0.bench.sample_distance import SurfaceDistance, object_rays
 from neus_l0.bounds.hull import hull_from_scene
 from neus_l0.bounds.points import PointBound
 from neus_l0.bounds.spans import ray_bounds
 from neus_l0.config.schema import RenderConfig
 from neus_l0.data.points import POINTS_FILE, read_points
-from neus_l0.data.scene import load_scene
 from neus_l0.evaluation.io import load_mesh, load_points
-from neus_l0.photos.compare import compare_to_truth
+from neus_l0.evaluation.sample_distance import SurfaceDistance, object_rays
+from neus_l0.experiments.photos_compare import compare_to_truth
+from neus_l0.formats.neus import load_scene
 from neus_l0.render.volume import coarse_z_vals
 
 

@@ -6,7 +6,7 @@ Usage:
                                      [--device cpu|cuda] [--compile] [--only VARIANT ...]
                                      [override ...]
 
-Builds the built-in ``demo`` scene (`neus_l0.data.synthetic.make_scene`), trains the config
+Builds the built-in ``demo`` scene (`neus_l0.synthetic.scene.make_scene`), trains the config
 for ``--warm`` iterations (the baseline, so the shape has moved away from the initial
 sphere and s has grown), then copies that state into one model per variant and times
 ``--steps`` training steps of each, interleaved over ``--rounds`` rounds (so load on a

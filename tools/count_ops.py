@@ -5,7 +5,7 @@ Usage:
                               [--warm 3] [--iteration ITER] [--top 25] [--phases]
                               [--run-setup] [override ...]
 
-Builds the built-in ``demo`` scene (small, `neus_l0.data.synthetic.make_scene`), the config's
+Builds the built-in ``demo`` scene (small, `neus_l0.synthetic.scene.make_scene`), the config's
 model and optimiser, runs ``--warm`` untimed steps (lazy state: Adam's moments, the first
 occupancy update), then runs ONE `neus_l0.train.step.train_step` under a `TorchDispatchMode` that
 counts every aten op reaching the dispatcher below autograd: the ops a kernel launch (or a
@@ -144,7 +144,7 @@ def count_step_ops(conf: str, overrides: list[str], views: int = 4, width: int =
         setup = None
         if run_setup:
             setup = StepSetup(sampler=build_sampler(cfg.sampler))
-            setup.bounds = static_bounds(scene, cfg, Path(tmp))
+            setup.bounds = static_bounds(scene, cfg, Path(tmp) / "hull.pt")
             setup.pool = reachable_pixels(scene, cfg.render, setup.bounds,
                                           background=model.background is not None)
     opt = make_optimizer(model, cfg)

@@ -38,7 +38,7 @@ import numpy as np
 
 from neus_l0.atomic import atomic_write_json, atomic_write_png
 from neus_l0.data.cameras import decompose_projection, read_world_mats
-from neus_l0.data.transforms import OPENGL_TO_OPENCV
+from neus_l0.formats.transforms import OPENGL_TO_OPENCV
 
 AXIS = np.array([1.0, 2.0, 3.0]) / math.sqrt(14.0)
 

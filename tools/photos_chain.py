@@ -10,7 +10,7 @@ Usage: python tools/photos_chain.py --out DIR [--max-seconds 150] [--resolution 
    extracts both meshes;
 4. maps the colmap-chain mesh into the true world frame with the similarity (Umeyama) that
    takes the recovered camera centres onto the true ones (views paired through
-   DIR/colmap/sources.txt; `neus_l0.photos.compare.compare_to_truth`);
+   DIR/colmap/sources.txt; `neus_l0.experiments.photos_compare.compare_to_truth`);
 5. scores both meshes against the true scene (`score_mesh`, the demo's sampling density),
    draws each next to the ground truth from the first true camera, and writes
    DIR/chain.json with pose errors, similarity scale, Chamfer numbers, iterations, seconds.
@@ -37,7 +37,7 @@ def train_and_mesh(scene_dir: Path, run_dir: Path, conf: str, overrides: list[st
     """Train on `scene_dir` into `run_dir` and extract ``run_dir/mesh.ply`` (scene's world)."""
     from neus_l0.atomic import atomic_write_json
     from neus_l0.config.load import load_config
-    from neus_l0.data.scene import load_scene
+    from neus_l0.formats.neus import load_scene
     from neus_l0.mesh.extract import export_mesh
     from neus_l0.mesh.from_run import mesh_from_run
     from neus_l0.train.loop import train
@@ -72,7 +72,7 @@ def trimmed_icp(src: np.ndarray, dst: np.ndarray, iters: int = 60, keep: float =
     such as unseen faces, would otherwise pull the fit). Returns the (4, 4) transform."""
     from scipy.spatial import cKDTree
 
-    from neus_l0.photos.align import umeyama
+    from neus_l0.experiments.photos_align import umeyama
 
     tree = cKDTree(dst)
     M = np.eye(4)
@@ -95,8 +95,8 @@ def icp_to_truth(mesh_path: Path, true_dir: Path) -> tuple[Path, dict]:
     import trimesh
     from scipy.spatial import cKDTree
 
+    from neus_l0.experiments.photos_align import rotation_angle_deg
     from neus_l0.mesh.extract import export_mesh
-    from neus_l0.photos.align import rotation_angle_deg
 
     mesh = trimesh.load(mesh_path, force="mesh", process=False)
     gt = np.asarray(trimesh.load(true_dir / "gt_points.ply", process=False).vertices)
@@ -116,7 +116,7 @@ def score_meshes(meshes: dict[str, Path], true_dir: Path, out: Path,
     with a comparison picture per mesh (`timings` gets the seconds of each score)."""
     import trimesh
 
-    from neus_l0.commands.demo import draw_comparison, score_demo_mesh
+    from neus_l0.pipelines.demo import draw_comparison, score_demo_mesh
 
     keys = ("accuracy", "completeness", "overall")
     scores = {}
@@ -151,9 +151,9 @@ def main() -> None:
 
     from neus_l0.atomic import atomic_write_json
     from neus_l0.cli import main as cli_main
-    from neus_l0.data.synthetic import make_scene
+    from neus_l0.experiments.photos_compare import compare_to_truth
     from neus_l0.mesh.extract import export_mesh
-    from neus_l0.photos.compare import compare_to_truth
+    from neus_l0.synthetic.scene import make_scene
 
     out = Path(args.out)
     true_dir, colmap_dir = out / "true", out / "colmap"

@@ -5,7 +5,7 @@ Usage:
 
 MESH is in world units (as `neus-l0 mesh` writes it); SCENE is a NeuS-format folder
 (`image/`, `cameras_sphere.npz`). Top row: the input images; bottom row: the mesh shaded from
-the same cameras (`neus_l0.mesh.preview.raster_render`, no display or GPU needed).
+the same cameras (`neus_l0.figures.raster.raster_render`, no display or GPU needed).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from neus_l0.data.cameras import read_world_mats  # noqa: E402
-from neus_l0.mesh.preview import raster_render  # noqa: E402
+from neus_l0.figures.raster import raster_render  # noqa: E402
 
 
 def main() -> None:

@@ -3,7 +3,7 @@
 A scene written by ``neus-l0 colmap`` has no visual hull unless the user gave masks, and
 without masks nothing proves that space is empty. What the sparse SfM points do say is
 where surface *is*; the object sphere (``scale_mat``) is already chosen from them (a high
-percentile of their spread times 1.25, `neus_l0.photos.sphere`). This module goes one step
+percentile of their spread times 1.25, `neus_l0.formats.sphere`). This module goes one step
 further, and only that far: the box around those points, oriented along their principal
 axes and widened by a margin, clipped to the unit sphere. It is the same kind of statement
 as the sphere (the object lies where its points spread), not a carving of the space

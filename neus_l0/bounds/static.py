@@ -17,7 +17,6 @@ from neus_l0.bounds.points import PointBound
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
 from neus_l0.errors import SceneError
-from neus_l0.run.checkpoints import latest_checkpoint
 
 #: The share of the unit sphere's outer shell a visual hull may fill before the object counts
 #: as cut by the sphere. Measured with the default 128^3 hull. Objects that fit: the demo
@@ -35,17 +34,18 @@ CUT_MIN_VIEWS = 6
 CUT_MAX_MARGIN = 0.03
 
 
-def static_bounds(scene: Scene, cfg: Config,
-                  run_dir: Path) -> tuple[VisualHull | PointBound, ...]:
+def static_bounds(scene: Scene, cfg: Config, hull_file: Path,
+                  reuse: bool = False) -> tuple[VisualHull | PointBound, ...]:
     """The run's static bounds: its visual hull, or without one the SfM point box, or none.
 
     The hull exists only when the scene has masks and `render.hull.enabled` (views without
-    masks carve nothing): carved at the first start and saved as ``RUN/hull.pt`` once it
-    passes `check_fit` (a refused scene leaves none); a resume loads that file, and a start
-    without a checkpoint carves it again (the file is then an earlier start's, maybe of
-    another scene). Each warning of the carving (a suspicious mask, named) is one line on
-    stderr. Without a hull, `render.point_bound.enabled` and a ``sparse_points.npz`` in the
-    scene folder (`neus-l0 colmap`) give the points' box (`neus_l0.bounds.points`); else ().
+    masks carve nothing): carved and saved as `hull_file` (``RUN/hull.pt``) once it passes
+    `check_fit` (a refused scene leaves none). With `reuse` (a resume: the caller knows the run
+    has a checkpoint) that file is loaded; without, it is carved again (the file is then an
+    earlier start's, maybe of another scene). Each warning of the carving (a suspicious mask,
+    named) is one line on stderr. Without a hull, `render.point_bound.enabled` and a
+    ``sparse_points.npz`` in the scene folder (`neus-l0 colmap`) give the points' box
+    (`neus_l0.bounds.points`); else ().
     """
     h = cfg.render.hull
     if not (h.enabled and scene.has_masks):
@@ -55,10 +55,8 @@ def static_bounds(scene: Scene, cfg: Config,
             return ()
         print(f"neus-l0: {box.describe()}", file=sys.stderr, flush=True)
         return (box,)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    # a run without a checkpoint starts afresh: a hull.pt there is an earlier start's
-    hull = hull_for_run(scene, run_dir / "hull.pt", h.resolution, h.margin_px,
-                        reuse=latest_checkpoint(run_dir) is not None,
+    hull_file.parent.mkdir(parents=True, exist_ok=True)
+    hull = hull_for_run(scene, hull_file, h.resolution, h.margin_px, reuse=reuse,
                         check=lambda carved: check_fit(carved, scene))
     for line in (hull.report.warnings if hull.report is not None else []):
         print(f"neus-l0: visual hull: {line}", file=sys.stderr, flush=True)

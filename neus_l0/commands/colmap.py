@@ -17,8 +17,6 @@ CAMERA_MODEL_CHOICES = ("simple-pinhole", "pinhole", "simple-radial", "radial", 
                         "opencv-fisheye")
 #: Default longest side of the images features are extracted from and the scene is written at.
 DEFAULT_MAX_SIZE = 1600
-#: Views shown in sphere_preview.png.
-PREVIEW_VIEWS = 4
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
@@ -76,102 +74,35 @@ def _parse_sphere(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
-    import time
     from pathlib import Path
 
-    import cv2
-    import numpy as np
-
-    from neus_l0.atomic import atomic_write_text
     from neus_l0.commands._paths import check_output_dir
-    from neus_l0.photos import sfm, sparse_io
-    from neus_l0.photos.export import export_scene, find_masks
-    from neus_l0.photos.preview import write_preview
-    from neus_l0.photos.sphere import choose_sphere, user_sphere
+    from neus_l0.photos import sfm
+    from neus_l0.photos.pipeline import PhotoOptions, photos_to_scene
 
-    t_start = time.perf_counter()
-    sphere_arg = _parse_sphere(args)
-    photo_dir, out = Path(args.photos), check_output_dir(args.out, "OUT")
+    sphere = _parse_sphere(args)
+    out = check_output_dir(args.out, "OUT")
     if args.sparse and (args.camera_model or args.max_features):
         raise NeusL0Error("--camera-model and --max-features apply to SfM, not to --sparse")
-    if args.masks and not Path(args.masks).is_dir():
-        raise NeusL0Error(f"{args.masks}: mask folder not found")
-    progress = not args.no_progress
-    print(f"checking photos in {photo_dir}")
-    paths, sizes = sfm.list_photos(photo_dir, same_size=not args.sparse)
-    names = [p.name for p in paths]
-    print(f"      {len(names)} photos")
-
-    timings: dict = {}
-    if args.sparse:
-        print(f"reading the sparse model {args.sparse}")
-        model = sparse_io.read_model(args.sparse)
-        for name, cid in zip(model.names, model.camera_ids, strict=True):
-            if name not in sizes:
-                raise NeusL0Error(f"{args.sparse}: image '{name}' of the model is not in "
-                                  f"{photo_dir}")
-            cam = model.cameras[int(cid)]
-            if sizes[name] != (cam.width, cam.height):
-                raise NeusL0Error(f"{photo_dir / name}: size {sizes[name][0]}x{sizes[name][1]} "
-                                  f"differs from its camera's {cam.width}x{cam.height} in "
-                                  f"{args.sparse}")
-        model = sfm.check_models([model], len(names), photo_dir)
-    else:
-        opts = sfm.SfmOptions(camera_model=args.camera_model or sfm.DEFAULT_CAMERA_MODEL,
+    sfm_opts = sfm.SfmOptions(camera_model=args.camera_model or sfm.DEFAULT_CAMERA_MODEL,
                               matcher=args.matcher, max_size=args.max_size,
                               max_features=args.max_features or sfm.DEFAULT_MAX_FEATURES,
                               threads=args.threads, seed=args.seed,
                               refine_principal_point=args.refine_principal_point)
-        models, timings = sfm.run_sfm(photo_dir, names, out / "colmap", opts,
-                                      progress=progress)
-        model = sfm.check_models(models, len(names), photo_dir)
-
-    registered = set(model.names)
-    missing = [n for n in names if n not in registered]
-    atomic_write_text(out / "unregistered.txt", "".join(f"{n}\n" for n in missing))
-
-    if sphere_arg is not None:
-        sphere = user_sphere(np.array(sphere_arg[0]), sphere_arg[1], model.centres, model.axes)
-    else:
-        sphere = choose_sphere(model.points, model.track_len, model.centres, model.axes)
-
-    masks = find_masks(args.masks, model.names) if args.masks else None
-    print(f"writing the NeuS scene to {out}")
-    info = export_scene(out, model, photo_dir, sphere.center, sphere.radius, masks=masks,
-                        max_size=args.max_size, progress=progress)
-
-    picks = np.unique(np.linspace(0, model.n_views - 1, min(PREVIEW_VIEWS, model.n_views))
-                      .round().astype(int))
-    images = [cv2.cvtColor(cv2.imread(str(out / "image" / f"{i:03d}.png")), cv2.COLOR_BGR2RGB)
-              for i in picks]
-    write_preview(out / "sphere_preview.png", images, [info["world_mats"][i] for i in picks],
-                  model.points, sphere.center, sphere.radius,
-                  titles=[model.names[i] for i in picks])
-
-    summary = {
-        "photos": len(names), "registered": model.n_views, "unregistered": missing,
-        "points3D": int(len(model.points)), "size": list(info["size"]),
-        "source": "sparse model " + str(args.sparse) if args.sparse else "pycolmap SfM",
-        "timings_s": {k: (round(v, 2) if isinstance(v, float) else v)
-                      for k, v in timings.items()},
-        "sphere": {"center": [float(v) for v in sphere.center], "radius": sphere.radius,
-                   "source": sphere.source, "convergence": [float(v) for v in
-                                                            sphere.convergence],
-                   "points_used": sphere.n_points, "capped": sphere.capped},
-        "masks": masks is not None,
-        "seconds": round(time.perf_counter() - t_start, 2),
-    }
-    atomic_write_text(out / "colmap_summary.json", json.dumps(summary, indent=2) + "\n")
-    print(f"registered   {model.n_views} of {len(names)} photos, {len(model.points)} sparse "
-          f"points, images {info['size'][0]} x {info['size'][1]}")
-    if missing:
-        print(f"unregistered {len(missing)}: {', '.join(missing)} (listed in "
-              f"{out / 'unregistered.txt'}; not written to the scene)")
-    print(sphere.explain())
+    s = photos_to_scene(PhotoOptions(
+        photos=Path(args.photos), out=out, sfm=sfm_opts,
+        masks=Path(args.masks) if args.masks else None,
+        sparse=Path(args.sparse) if args.sparse else None, max_size=args.max_size,
+        sphere=sphere, progress=not args.no_progress))
+    print(f"registered   {s['registered']} of {s['photos']} photos, {s['points3D']} sparse "
+          f"points, images {s['size'][0]} x {s['size'][1]}")
+    if s["unregistered"]:
+        print(f"unregistered {len(s['unregistered'])}: {', '.join(s['unregistered'])} (listed "
+              f"in {s['unregistered_file']}; not written to the scene)")
+    print(s["explain"])
     print(f"check it     {out / 'sphere_preview.png'} (override with --center X,Y,Z "
           "--radius R)")
     print(f"next         neus-l0 train {out} --conf "
-          f"{'wmask' if masks is not None else 'womask'} sampler=l0 --out RUN; "
+          f"{'wmask' if s['masks'] else 'womask'} sampler=l0 --out RUN; "
           "then neus-l0 mesh RUN")
     return 0

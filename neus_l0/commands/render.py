@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.commands._paths import check_output_dir
     from neus_l0.commands._threads import use_threads
     from neus_l0.device import pick_device
-    from neus_l0.render.from_run import RenderOptions, render_run
+    from neus_l0.pipelines.render_run import RenderOptions, render_run
 
     options = RenderOptions(
         views=args.views, frames=args.frames, elevation=args.elevation, width=args.width,

@@ -1,7 +1,7 @@
 """`neus-l0 study sampling|fork --out DIR`: studies of the sampler.
 
 `sampling`: the oracle study on analytic SDFs (outside training). `fork`: the samplers
-compared on the same sharp field late in training (`neus_l0.study.fork`).
+compared on the same sharp field late in training (`neus_l0.experiments.fork`).
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     if args.study == "fork":
         return _fork(args, out)
     if args.study == "frontier":
-        from neus_l0.study.frontier import write_outputs
+        from neus_l0.experiments.frontier import write_outputs
 
         if not args.bench:
             raise NeusL0Error("study frontier needs --bench DIR1,DIR2,...")
@@ -91,8 +91,8 @@ def run(args: argparse.Namespace) -> int:
         raise NeusL0Error(f"{' '.join(args.overrides)}: config overrides are for the fork "
                           "study")
     from neus_l0.atomic import atomic_write_text
-    from neus_l0.study import report
-    from neus_l0.study.sampling import BUDGETS, REGIMES, run_study
+    from neus_l0.experiments import oracle_report as report
+    from neus_l0.experiments.oracle import BUDGETS, REGIMES, run_study
 
     if args.rays < 1:
         raise NeusL0Error(f"--rays {args.rays}: must be >= 1")
@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
 def _fork(args: argparse.Namespace, out) -> int:
     import time
 
-    from neus_l0.study.fork import ARMS, ForkSpec, run_study
+    from neus_l0.experiments.fork import ARMS, ForkSpec, run_study
 
     spec = ForkSpec(out_dir=out, scenes=args.scenes, seeds=args.seeds,
                     arms=args.arms or tuple(ARMS), conf=args.conf,

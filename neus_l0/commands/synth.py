@@ -2,7 +2,7 @@
 
 The numbers are checked first (`check_scene_args`, and the memory the rendering needs
 against the memory available); OUT is replaced whole, at the end (see
-`neus_l0.data.synthetic`).
+`neus_l0.synthetic.scene`).
 """
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 def run(args: argparse.Namespace) -> int:
     from neus_l0.commands._paths import check_output_dir
-    from neus_l0.data.synthetic import check_render_memory, check_scene_args, make_scene
     from neus_l0.mesh.memory import available_memory
+    from neus_l0.synthetic.scene import check_render_memory, check_scene_args, make_scene
 
     check_output_dir(args.out, "OUT")
     check_scene_args(args.views, args.width, args.height, args.spp, args.seed)

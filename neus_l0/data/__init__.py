@@ -1,14 +1,13 @@
-"""Scenes: the NeuS-format loader, camera rays and synthetic scenes with exact ground truth.
+"""Scenes in memory: the `Scene` container, cameras, rays, view pairing and splits, SfM points.
 
-- `neus_l0.data.scene`: `Scene`, `load_scene`, `validate_scene`, `scene_summary`; image
-  reading (RGBA: alpha as the mask) and the downscale shared with the other formats.
-- `neus_l0.data.transforms`: transforms.json scenes (NeRF-synthetic, instant-ngp,
-  nerfstudio): `read_transforms` (cameras, image and mask paths), `load_views` (pixels,
-  undistortion); `neus_l0.formats.open.open_scene` adds the object sphere.
-- `neus_l0.data.rays`: `pixel_rays`, `image_rays`, `random_rays`.
+- `neus_l0.data.scene`: `Scene`, `scene_summary`.
 - `neus_l0.data.cameras`: projection decomposition, look-at, the optical axes' convergence,
   the DTU-like camera cap.
-- `neus_l0.data.shapes`: analytic SDFs, CSG and the built-in shapes.
-- `neus_l0.data.raycast`: the sphere-tracing renderer (textured, shaded, anti-aliased).
-- `neus_l0.data.synthetic`: `make_scene`, which writes a NeuS-format folder + ground truth.
+- `neus_l0.data.rays`: `pixel_rays`, `image_rays`, `random_rays`.
+- `neus_l0.data.views`: which file is which view (pairing by the number in the name).
+- `neus_l0.data.split`: the training / held-out split of views (`split_views`, `subset_scene`).
+- `neus_l0.data.points`: SfM points on disk.
+
+The formats on disk are read by `neus_l0.formats`; synthetic scenes come from
+`neus_l0.synthetic`.
 """

@@ -9,7 +9,7 @@ on the unit sphere: ``x_world = scale_mat[:3, :3] @ x_norm + scale_mat[:3, 3]``.
 Everything here is numpy float64 (cameras are few; precision matters more than speed).
 
 The light readers (`read_world_mats`, `read_masks`, `read_indexed`) read what evaluation and
-figures need from a NeuS-format folder without torch; `neus_l0.data.scene.load_scene` is the
+figures need from a NeuS-format folder without torch; `neus_l0.formats.neus.load_scene` is the
 training loader (images, downscaling, poses in the normalised frame).
 """
 

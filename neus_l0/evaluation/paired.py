@@ -1,8 +1,8 @@
 """Paired comparisons of two methods measured on the same units (scene x seed): the sign
 test and a t interval on the differences.
 
-Pure functions on plain sequences; the studies (`neus_l0.study.fork`) and the bench's
-tables (`neus_l0.bench.plots`) report with them.
+Pure functions on plain sequences; the studies (`neus_l0.experiments.fork`) and the bench's
+tables (`neus_l0.experiments.plots`) report with them.
 """
 
 from __future__ import annotations

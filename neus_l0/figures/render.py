@@ -1,6 +1,6 @@
 """Headless renders of meshes for the figures: shaded, and coloured by surface error.
 
-Rendering is `neus_l0.mesh.preview.raster_render` (a vectorised torch z-buffer rasteriser over
+Rendering is `neus_l0.figures.raster.raster_render` (a vectorised torch z-buffer rasteriser over
 the triangles, on the CPU; no OpenGL, no display, no GPU). The error of a pixel is the
 distance from the predicted surface point it shows to the true surface (exact
 point-to-triangle distance to ``gt_mesh.ply`` near it, see `SurfaceDistance`), so the error
@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from neus_l0.figures.raster import raster_render
 from neus_l0.figures.views import Camera
-from neus_l0.mesh.preview import raster_render
 
 #: Colour map of the error images.
 ERROR_CMAP = "turbo"

@@ -1,9 +1,9 @@
 """Open a user's scene, whatever its format: NeuS format or transforms.json.
 
 - NeuS format (``image/``, optional ``mask/``, ``cameras_sphere.npz``): read by
-  `neus_l0.data.scene.load_scene`, its ``scale_mat`` as the file gives it.
+  `neus_l0.formats.neus.load_scene`, its ``scale_mat`` as the file gives it.
 - transforms.json (NeRF-synthetic ``transforms_{train,val,test}.json``, instant-ngp,
-  nerfstudio): parsed and undistorted by `neus_l0.data.transforms`; the object sphere is
+  nerfstudio): parsed and undistorted by `neus_l0.formats.transforms`; the object sphere is
   found from the *train* split (`neus_l0.formats.sphere.find_sphere`), whichever split is
   loaded, and independently of the downscale, so that every split and resolution shares one
   ``scale_mat``. Poses stay in the file's world frame, so meshes come out in it.
@@ -26,10 +26,11 @@ import numpy as np
 import torch
 
 from neus_l0.data.cameras import CAMERA_FILES, projection_matrix
-from neus_l0.data.scene import Scene, load_scene, scene_summary
-from neus_l0.data.transforms import SPLITS, find_transforms, load_views, read_transforms
+from neus_l0.data.scene import Scene, scene_summary
 from neus_l0.errors import SceneError
+from neus_l0.formats.neus import load_scene
 from neus_l0.formats.sphere import SphereFit, find_sphere
+from neus_l0.formats.transforms import SPLITS, find_transforms, load_views, read_transforms
 
 #: The preview's file name (as `neus-l0 colmap` writes it).
 PREVIEW_FILE = "sphere_preview.png"
@@ -73,7 +74,7 @@ def open_scene(root: str | Path, downscale: int = 1, device: str | torch.device 
 
     Args:
         root: the scene folder (or a transforms JSON file).
-        downscale: integer factor >= 1 (`neus_l0.data.scene.load_scene`'s convention).
+        downscale: integer factor >= 1 (`neus_l0.formats.neus.load_scene`'s convention).
         device: where the tensors go.
         split: ``train``, ``val`` or ``test`` (transforms.json scenes; NeuS format has only
             ``train``).
@@ -148,8 +149,8 @@ def _preview_path(folder: Path) -> Path:
 
 
 def _write_preview(folder: Path, ts, views, sphere: SphereFit) -> Path | None:
-    """Draw the sphere over a few train views (`neus_l0.photos.preview.write_preview`)."""
-    from neus_l0.photos.preview import write_preview
+    """Draw the sphere over a few train views (`neus_l0.formats.preview.write_preview`)."""
+    from neus_l0.formats.preview import write_preview
 
     V = ts.n_views
     picks = np.unique(np.linspace(0, V - 1, min(PREVIEW_VIEWS, V)).round().astype(int))

@@ -5,5 +5,5 @@
 - `neus_l0.mesh.memory`: the memory an extraction needs, estimated before it runs.
 - `neus_l0.mesh.cleanup`: pymeshlab clean-up.
 - `neus_l0.mesh.texture`: UV atlas and texture baking.
-- `neus_l0.mesh.preview`: headless pictures of meshes.
+- `neus_l0.figures.raster`: headless pictures of meshes.
 """

@@ -14,7 +14,7 @@ once from a `neus_l0.config.schema.SamplerConfig` (`build_sampler`):
   NeuS's opacity with its linear SDF estimate (`sample_neus_sections`).
 
 `up_sample` runs the rounds with any SDF function, so the same code serves training (the SDF
-network) and the oracle study (analytic SDFs, `neus_l0.study.sampling`). The module is a leaf
+network) and the oracle study (analytic SDFs, `neus_l0.experiments.oracle`). The module is a leaf
 above `neus_l0.sampling.kernels`: it knows no networks and no configs beyond
 `SamplerConfig`'s fields.
 

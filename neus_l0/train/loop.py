@@ -165,7 +165,8 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     check_writable(run_dir, (kept + 1) * checkpoint_bytes(model, run.optimizer))
     run.generator.manual_seed(cfg.train.seed)
     run.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
-    run.setup.bounds = static_bounds(scene, cfg, run_dir)
+    run.setup.bounds = static_bounds(scene, cfg, run_dir / "hull.pt",
+                                     reuse=latest_checkpoint(run_dir) is not None)
     run.setup.pool = reachable_pixels(scene, cfg.render, run.setup.bounds,
                                        background=model.background is not None)
     run.setup.compiled = compiled_step(render_and_loss, cfg, device)

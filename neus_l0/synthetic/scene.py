@@ -41,20 +41,20 @@ from neus_l0.data.cameras import (
     projection_matrix,
     sphere_scale_mat,
 )
-from neus_l0.data.raycast import SdfSurface, Style, render_views
-from neus_l0.data.shapes import (
+from neus_l0.errors import NeusL0Error
+from neus_l0.synthetic.raycast import SdfSurface, Style, render_views
+from neus_l0.synthetic.shapes import (
     BUILTIN_SHAPES,
     BuiltinShape,
     Translated,
     builtin_shape,
     project_to_surface,
 )
-from neus_l0.errors import NeusL0Error
 
 if TYPE_CHECKING:
     import trimesh
 
-    from neus_l0.data.meshes import MeshSurface
+    from neus_l0.synthetic.meshes import MeshSurface
 
 #: Where built-in objects sit in the world frame (millimetres; deliberately off-origin).
 WORLD_OFFSET = (12.0, -8.0, 30.0)
@@ -308,7 +308,7 @@ def _true_surface(scene: str | Path, gt_voxel: float | None) -> _TrueSurface:
                             trimesh.Trimesh(verts, faces, process=False),
                             SdfSurface(sdf, tuple(lo - 1.0), tuple(hi + 1.0)), sdf, voxel,
                             features)
-    from neus_l0.data.meshes import MeshSurface
+    from neus_l0.synthetic.meshes import MeshSurface
 
     ext = mesh.bounds[1] - mesh.bounds[0]
     k = 250.0 / float(ext.max())  # about 250 mm across, like the built-ins

@@ -2,7 +2,7 @@
 
 Each run is one task, ``ray.remote(num_gpus=1)`` on a GPU and ``num_cpus = threads or 1`` on
 a CPU; the task starts the same run process as the local backend
-(`neus_l0.bench.runner.run_in_subprocess`), so peak memory stays per run and a crash stays
+(`neus_l0.experiments.runner.run_in_subprocess`), so peak memory stays per run and a crash stays
 inside its run. Rows are handed back as tasks finish (`ray.wait`). An already initialised
 Ray (``ray.init(address=...)`` by the caller, or a cluster named by ``RAY_ADDRESS``) is used
 as it is; otherwise a local instance is started and shut down afterwards.
@@ -11,7 +11,7 @@ Signals. Ray's workers cannot pass a signal on to the run process they wait for,
 sweep stops the runs through their tasks: on SIGTERM / SIGINT (seen through the caller's
 `StopOnSignal`) every task is cancelled with ``ray.cancel(force=True)``, which kills its
 worker; the run process, its parent gone, stops as on SIGTERM
-(`neus_l0.bench.runner.stop_when_orphaned`: the step ends, the checkpoint is written and the
+(`neus_l0.experiments.runner.stop_when_orphaned`: the step ends, the checkpoint is written and the
 run records itself interrupted). The runs that had started are recorded interrupted at once,
 the others never start.
 """
@@ -20,14 +20,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-from neus_l0.bench.runner import (
+from neus_l0.errors import NeusL0Error
+from neus_l0.experiments.runner import (
     RunSpec,
     failed_row,
     interrupted_row,
     run_in_subprocess,
     write_status,
 )
-from neus_l0.errors import NeusL0Error
 from neus_l0.train.signals import StopOnSignal
 
 #: How often (seconds) the sweep looks for a signal while it waits for the tasks.

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from neus_l0.atomic import atomic_path, atomic_write_text
-from neus_l0.bench.results import read_results
+from neus_l0.experiments.results import read_results
 from neus_l0.run.metrics import read_lines
 
 #: Line colours per sampler (others cycle through matplotlib's defaults).

@@ -1,6 +1,6 @@
 """One benchmark run, in its own process: train -> mesh -> Chamfer -> held-out PSNR.
 
-`python -m neus_l0.bench.runner RUN_DIR/spec.json` executes the spec (a JSON object, see
+`python -m neus_l0.experiments.runner RUN_DIR/spec.json` executes the spec (a JSON object, see
 `RunSpec`) and writes into RUN_DIR, besides the training run's own files (config.yaml,
 checkpoints/, metrics.jsonl, run.json):
 
@@ -11,8 +11,8 @@ checkpoints/, metrics.jsonl, run.json):
   sample distance, and ``curve``: Chamfer against training time, one point per snapshot
   and the final model's last (see `execute`);
 * ``status.json``: ``{"status": "done" | "failed" | "interrupted", "row": {...}}``, the
-  run's results row (see `neus_l0.bench.results.COLUMNS`), written last;
-* ``progress.json``: the step the run is at (`neus_l0.bench.progress`), which the sweep
+  run's results row (see `neus_l0.experiments.results.COLUMNS`), written last;
+* ``progress.json``: the step the run is at (`neus_l0.experiments.progress`), which the sweep
   shows as a progress bar while it waits.
 
 Held-out PSNR is bounded: each held-out view is rendered at a pixel stride, the config's
@@ -51,7 +51,7 @@ import traceback
 from pathlib import Path
 
 from neus_l0.atomic import atomic_write_json
-from neus_l0.bench.results import make_row
+from neus_l0.experiments.results import make_row
 from neus_l0.run.metrics import snapshot_lines
 from neus_l0.train.signals import STOP_SIGNALS, StopOnSignal
 
@@ -80,7 +80,7 @@ class RunSpec:
             `conf` and `overrides` in the run's process.
         device: ``cpu`` or ``cuda``.
         threads: torch CPU threads in the run's process (None or 0: torch's default).
-        holdout: hold out every K-th view (0: none; see `neus_l0.bench.holdout`).
+        holdout: hold out every K-th view (0: none; see `neus_l0.data.split`).
         resolution: marching-cubes resolution.
         eval_density: Chamfer sampling density and thinning radius (world units).
         sample_rays: rays of the sample-distance hook.
@@ -177,7 +177,7 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int, pixels: in
     images show the backdrop); without masks, over the whole image.
 
     Args:
-        report: a `neus_l0.bench.progress.StepReporter` (or None), told after each view.
+        report: a `neus_l0.experiments.progress.StepReporter` (or None), told after each view.
 
     Returns:
         one PSNR (dB) per view.
@@ -211,7 +211,7 @@ class TrainProgress:
     """A training hook that reports the loop's progress against the budget (returns nothing).
 
     Args:
-        report: a `neus_l0.bench.progress.StepReporter`.
+        report: a `neus_l0.experiments.progress.StepReporter`.
         budget_s: the run's wall-clock budget.
     """
 
@@ -247,7 +247,7 @@ def _peak_rss_mb() -> float:
 def curve_point(seconds: float, iteration: int, score: dict | None, mesh_s: float | None,
                 error: str | None = None) -> dict:
     """One point of eval.json's ``curve``: a model's Chamfer at a training time."""
-    from neus_l0.bench.results import clean_number
+    from neus_l0.experiments.results import clean_number
 
     point = {"seconds": clean_number(seconds), "iteration": int(iteration)}
     for k in ("accuracy", "completeness", "overall"):
@@ -269,7 +269,7 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         final_iter: the final model's iteration (its snapshot is the final point).
         elapsed: loop time (s) of each snapshot iteration (metrics.jsonl's ``elapsed``).
         score_fn: ``score_fn(mesh_path) -> report or None``.
-        report: a `neus_l0.bench.progress.StepReporter` (or None), told after each snapshot.
+        report: a `neus_l0.experiments.progress.StepReporter` (or None), told after each snapshot.
 
     Returns:
         curve points in iteration order; a snapshot whose mesh cannot be made (no surface
@@ -348,9 +348,9 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
 
     Args:
         progress: the training loop's own tqdm bar.
-        report: a `neus_l0.bench.progress.StepReporter` told each step (None: a silent one).
+        report: a `neus_l0.experiments.progress.StepReporter` told each step (None: a silent one).
     """
-    from neus_l0.bench.progress import StepReporter
+    from neus_l0.experiments.progress import StepReporter
 
     report = report if report is not None else StepReporter(None)
     report("load config and scene")
@@ -359,8 +359,9 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     import numpy as np
     import torch
 
-    from neus_l0.bench.holdout import split_views, subset_scene
-    from neus_l0.bench.sample_distance import SampleDistanceHook, SurfaceDistance
+    from neus_l0.data.split import split_views, subset_scene
+    from neus_l0.evaluation.sample_distance import SurfaceDistance
+    from neus_l0.experiments.sample_hook import SampleDistanceHook
     from neus_l0.formats.open import open_scene
     from neus_l0.mesh.extract import export_mesh
     from neus_l0.mesh.from_run import mesh_from_run
@@ -538,9 +539,9 @@ def main(argv: list[str] | None = None) -> int:
     """Subprocess entry point: execute the spec file, write status.json, exit 0 / 1."""
     argv = sys.argv[1:] if argv is None else argv
     if len(argv) != 1:
-        print("usage: python -m neus_l0.bench.runner RUN_DIR/spec.json", file=sys.stderr)
+        print("usage: python -m neus_l0.experiments.runner RUN_DIR/spec.json", file=sys.stderr)
         return 2
-    from neus_l0.bench.progress import PROGRESS_FILE, StepReporter
+    from neus_l0.experiments.progress import PROGRESS_FILE, StepReporter
 
     spec = read_spec(argv[0])
     # outside training (whose own handlers stop it after a step) a signal stops the run now
@@ -605,7 +606,7 @@ def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None,
 
     Args:
         timeout: seconds after which the process is killed (None: no limit).
-        watch: called with the run's progress file (`neus_l0.bench.progress`) about twice a
+        watch: called with the run's progress file (`neus_l0.experiments.progress`) about twice a
             second while the process runs, e.g. `StepDisplay.poll`.
         stop: the caller's active `ForwardSignals`: the process then runs in its own session
             (a Ctrl-C in the terminal reaches it once, through `stop`, not twice), `stop`
@@ -615,7 +616,7 @@ def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None,
     """
     import shutil
 
-    from neus_l0.bench.progress import PROGRESS_FILE
+    from neus_l0.experiments.progress import PROGRESS_FILE
 
     run_dir = spec.run_dir
     if run_dir.exists():
@@ -628,8 +629,8 @@ def run_in_subprocess(spec: RunSpec, timeout: float | None = None, watch=None,
     progress_path = run_dir / PROGRESS_FILE
     forward = stop is not None and stop.active
     with open(log, "w", encoding="utf-8") as f:
-        proc = subprocess.Popen([sys.executable, "-m", "neus_l0.bench.runner", str(spec_path)],
-                                stdout=f, stderr=subprocess.STDOUT, env=env,
+        cmd = [sys.executable, "-m", "neus_l0.experiments.runner", str(spec_path)]
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env,
                                 start_new_session=forward)
         try:
             if forward:

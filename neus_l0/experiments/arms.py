@@ -1,7 +1,7 @@
 """Arms of a side-by-side benchmark: Chamfer against training time, verdict, table, figure.
 
 An *arm* is one setting (config + sampler + budget) trained on a scene by
-`neus_l0.bench.runner` with snapshots (`RunSpec.snapshots`); its ``eval.json`` holds
+`neus_l0.experiments.runner` with snapshots (`RunSpec.snapshots`); its ``eval.json`` holds
 ``curve``: ``{seconds, iteration, accuracy, completeness, overall, mesh_s}`` per snapshot,
 the final model last. `tools/bench_fast_vs_neus.py` runs two arms per scene (``fast`` and
 ``neus``) and uses this module for everything after the runs:

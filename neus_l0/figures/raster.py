@@ -1,7 +1,9 @@
-"""Headless previews of meshes: shaded point-splat renders from a scene camera.
+"""The one mesh rasteriser: a mesh seen through a NeuS camera, headless, and pictures side by
+side.
 
-No OpenGL: the mesh is sampled densely, the samples are projected with the camera's
-``world_mat`` and z-buffered per pixel, and shaded with a head-light on their face normals.
+No OpenGL and no GPU: `raster_render` casts one ray per pixel centre at the mesh's triangles
+(the torch rasteriser of `neus_l0.synthetic.meshes.MeshSurface`) and shades the first hit with
+a head-light on its interpolated normal. `side_by_side` saves panels next to each other.
 """
 
 from __future__ import annotations
@@ -12,46 +14,6 @@ import numpy as np
 import trimesh
 
 from neus_l0.atomic import atomic_path
-
-
-def splat_render(mesh: trimesh.Trimesh, world_mat: np.ndarray, width: int, height: int,
-                 n_points: int = 400_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Render a mesh as shaded splats seen through a NeuS camera.
-
-    Args:
-        mesh: the mesh in world units.
-        world_mat: (3, 4) or (4, 4) projection world -> pixels (pixel centres at integers).
-        width, height: image size in pixels.
-        n_points: surface samples (more: fewer holes).
-        seed: sampling seed.
-
-    Returns:
-        shade (H, W) float in [0, 1] (NaN where nothing is seen) and depth (H, W) camera-z
-        (inf where nothing is seen).
-    """
-    from neus_l0.data.cameras import pixel_indices
-
-    shade = np.full((height, width), np.nan)
-    depth = np.full((height, width), np.inf)
-    if len(mesh.faces) == 0:
-        return shade, depth
-    pts, face = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
-    normals = mesh.face_normals[face]
-    col, row, z = pixel_indices(world_mat, pts, height, width)
-    ok = col >= 0
-    col, row, z, pts, normals = col[ok], row[ok], z[ok], pts[ok], normals[ok]
-    P = np.asarray(world_mat, dtype=np.float64)[:3, :4]
-    centre = -np.linalg.solve(P[:, :3], P[:, 3])
-    view = pts - centre
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
-    lit = np.abs((normals * view).sum(1))  # two-sided head-light
-    flat = row * width + col
-    order = np.lexsort((z, flat))  # by pixel, nearest first
-    flat, z, lit = flat[order], z[order], lit[order]
-    first = np.r_[True, flat[1:] != flat[:-1]]
-    shade.reshape(-1)[flat[first]] = 0.15 + 0.85 * lit[first]
-    depth.reshape(-1)[flat[first]] = z[first]
-    return shade, depth
 
 
 def side_by_side(path: str | Path, panels: list[tuple[str, np.ndarray]],
@@ -86,9 +48,9 @@ def raster_render(mesh: trimesh.Trimesh, world_mat: np.ndarray, width: int,
                   height: int) -> dict[str, np.ndarray]:
     """Render a mesh exactly (z-buffered triangles, no holes) through a NeuS camera.
 
-    Uses the vectorised torch rasteriser of `neus_l0.data.meshes.MeshSurface` (one ray per
-    pixel centre, first hit by Moller-Trumbore, vertex normals interpolated), head-light
-    shading as `splat_render`. Headless: no OpenGL, no GPU.
+    Uses the vectorised torch rasteriser of `neus_l0.synthetic.meshes.MeshSurface` (one ray per
+    pixel centre, first hit by Moller-Trumbore, vertex normals interpolated), two-sided
+    head-light shading. Headless: no OpenGL, no GPU.
 
     Args:
         mesh: the mesh in world units.
@@ -103,9 +65,9 @@ def raster_render(mesh: trimesh.Trimesh, world_mat: np.ndarray, width: int,
     import torch
 
     from neus_l0.data.cameras import decompose_projection
-    from neus_l0.data.meshes import MeshSurface
-    from neus_l0.data.raycast import RayGrid
     from neus_l0.data.rays import pixel_grid, pixel_rays
+    from neus_l0.synthetic.meshes import MeshSurface
+    from neus_l0.synthetic.raycast import RayGrid
 
     shade = np.full((height, width), np.nan)
     depth = np.full((height, width), np.inf)

@@ -45,13 +45,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from neus_l0.data.scene import (
-    area_downscale,
-    check_empty_masks,
-    downscale_matrix,
-    read_image,
-)
 from neus_l0.errors import SceneError
+from neus_l0.formats.neus import area_downscale, check_empty_masks, downscale_matrix, read_image
 
 #: The kinds of transforms.json files this module reads.
 KINDS = ("nerf-synthetic", "instant-ngp", "nerfstudio")
@@ -461,7 +456,7 @@ def load_views(ts: TransformsScene, downscale: int = 1, search: bool = True) -> 
 
     Args:
         ts: the parsed scene.
-        downscale: integer factor >= 1 (as `neus_l0.data.scene.load_scene`).
+        downscale: integer factor >= 1 (as `neus_l0.formats.neus.load_scene`).
         search: also keep the full-resolution masks block-averaged to `SEARCH_SIDE`
             (`Views.search_masks`, what the object sphere is searched with).
 

@@ -2,7 +2,7 @@
 
 Used by the tests and by docs/PHOTOS.md's measurements: views are paired through
 ``sources.txt`` (file names), the recovered camera centres are aligned to the true ones by
-a similarity (`neus_l0.photos.align.umeyama`), and the errors are reported relative to the
+a similarity (`photos_align.umeyama`), and the errors are reported relative to the
 object's size.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neus_l0.photos.align import pose_errors
+from neus_l0.experiments.photos_align import pose_errors
 
 
 def world_c2w(scene) -> np.ndarray:
@@ -31,13 +31,13 @@ def compare_to_truth(est_dir: str | Path, true_dir: str | Path) -> dict:
         true_dir: the synthetic scene whose ``image/`` photos were given to it.
 
     Returns:
-        `neus_l0.photos.align.pose_errors`'s dict plus ``object_size`` (the true object's
+        `photos_align.pose_errors`'s dict plus ``object_size`` (the true object's
         diameter: ``2 x scale_mat radius / 1.1``, the synthetic sphere's margin),
         ``sphere_center`` (3,) and ``sphere_radius`` of the chosen sphere mapped into the
         true world frame, ``gt_inside`` (fraction of ``gt_points.ply`` inside that sphere,
         when the file exists) and ``views`` (true view indices compared).
     """
-    from neus_l0.data.scene import load_scene
+    from neus_l0.formats.neus import load_scene
 
     est_dir, true_dir = Path(est_dir), Path(true_dir)
     est, true = load_scene(est_dir), load_scene(true_dir)

@@ -29,6 +29,7 @@ import torch
 from neus_l0.atomic import atomic_path, atomic_write_json, atomic_write_png
 from neus_l0.bounds.hull import VisualHull, load_run_hull
 from neus_l0.data.scene import Scene
+from neus_l0.data.split import split_views
 from neus_l0.errors import NeusL0Error
 from neus_l0.formats.open import open_scene
 from neus_l0.render.cameras import (
@@ -67,7 +68,7 @@ class RenderOptions:
         fps: video frame rate.
         video: write the MP4s.
         test_views: held-out view indices; holdout: hold out every K-th view (``i % K ==
-            0``, as `neus_l0.bench.holdout.split_views`); give one of them (or neither).
+            0``, as `neus_l0.data.split.split_views`); give one of them (or neither).
         scene: the scene folder (default the one ``RUN/run.json`` names).
         checkpoint: a specific checkpoint file (default the newest that loads).
     """
@@ -190,7 +191,7 @@ def select_views(n_views: int, options: RenderOptions) -> list[int]:
     """The scene views of ``--views train`` / ``test``.
 
     Training views: all but the held-out ones. Held-out views: `options.test_views`, or
-    every K-th view for ``holdout = K`` (``i % K == 0``, as `neus_l0.bench.holdout`).
+    every K-th view for ``holdout = K`` (`neus_l0.data.split.split_views`).
 
     Raises:
         NeusL0Error: an index out of range, no held-out view for ``test``, none left for
@@ -202,7 +203,7 @@ def select_views(n_views: int, options: RenderOptions) -> list[int]:
             raise NeusL0Error(f"--test-views: {bad} out of range 0..{n_views - 1}")
         held = sorted(set(options.test_views))
     else:
-        held = [i for i in range(n_views) if options.holdout and i % options.holdout == 0]
+        held = split_views(n_views, options.holdout)[1]
     if options.views == "test":
         if not held:
             raise NeusL0Error("--views test: no held-out views (give --test-views 0,8,16 or "

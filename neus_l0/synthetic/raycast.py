@@ -2,7 +2,7 @@
 
 The surface is anything that can report, for a batch of world-space rays, the first hit
 distance and the normal there (`SdfSurface` sphere-traces an analytic SDF; meshes use
-`neus_l0.data.meshes.MeshSurface`). The renderer adds
+`neus_l0.synthetic.meshes.MeshSurface`). The renderer adds
 
 * albedo from a solid (3D) value-noise texture with detail down to about two pixels, so
   multi-view matching has something to lock on to and it is the same from every view;
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from neus_l0.data.rays import pixel_grid, pixel_rays
-from neus_l0.data.shapes import SDF, sdf_gradient
+from neus_l0.synthetic.shapes import SDF, sdf_gradient
 
 Tensor = torch.Tensor
 

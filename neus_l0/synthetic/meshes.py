@@ -13,13 +13,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from neus_l0.data.raycast import RayGrid
+from neus_l0.synthetic.raycast import RayGrid
 
 Tensor = torch.Tensor
 
 
 class MeshSurface:
-    """A triangle mesh (world units) that `neus_l0.data.raycast.render_views` can draw.
+    """A triangle mesh (world units) that `neus_l0.synthetic.raycast.render_views` can draw.
 
     Args:
         vertices: (V, 3) positions.

@@ -37,9 +37,9 @@ from torch import Tensor
 
 from neus_l0.bounds.sphere import near_far_from_sphere
 from neus_l0.config.schema import SamplerConfig
-from neus_l0.data import shapes as sh
 from neus_l0.render.volume import coarse_z_vals
 from neus_l0.sampling.upsample import build_sampler, up_sample
+from neus_l0.synthetic import shapes as sh
 
 #: Distances (normalised units) at which a fine sample counts as near the first hit.
 EPS = (0.001, 0.003, 0.01, 0.03)

@@ -1,7 +1,7 @@
 """A benchmark run's current step, passed from the run's process to the sweep's progress bar.
 
 Every run executes in its own process with its output in ``log.txt``
-(`neus_l0.bench.runner`), so the sweep cannot show that process's bars. Instead the run
+(`neus_l0.experiments.runner`), so the sweep cannot show that process's bars. Instead the run
 writes its current step to ``RUN_DIR/progress.json`` (`StepReporter`): the step's name,
 how far it is (``n`` of ``total``, ``total`` None for a step of unknown length such as
 marching cubes) and its unit. The sweep polls that file while it waits (`StepDisplay`) and

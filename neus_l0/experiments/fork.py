@@ -9,19 +9,19 @@ the fork, so that the arms differ only in the sampler from there on. The command
 user's own; the study prints each one.
 
 Training uses the scene's training views (every ``holdout``-th view is held out, as in
-`neus-l0 bench`: `neus_l0.bench.holdout.split_views`), written once as a scene folder of its
+`neus-l0 bench`: `neus_l0.data.split.split_views`), written once as a scene folder of its
 own (`write_view_subset`). Each arm, and the base at the fork, is then scored:
 
 * Chamfer (`neus_l0.evaluation.score.score_mesh` on the mesh at ``resolution``^3) and the
   same on the features' balls, pooled by kind (pits, thin parts:
   `neus_l0.evaluation.features.kind_errors`);
 * ``sample_dist``: the mean distance of the fine samples to the true surface on a fixed set
-  of object rays (`neus_l0.bench.sample_distance`);
-* held-out PSNR (`neus_l0.bench.runner.heldout_psnr`).
+  of object rays (`neus_l0.evaluation.sample_distance`);
+* held-out PSNR (`neus_l0.experiments.runner.heldout_psnr`).
 
 Layout of OUT: ``scenes/`` (built-in scenes synthesised, and each scene's training views),
 ``runs/<scene>__seed<seed>/<arm>/`` (run folders; ``score.json`` in each), ``fork.csv``
-and ``summary.md`` (`neus_l0.study.fork_report`). A re-run skips what is done.
+and ``summary.md`` (`neus_l0.experiments.fork_report`). A re-run skips what is done.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ class ForkSpec:
         views, width, height: size of synthesised built-in scenes.
         resolution: marching-cubes resolution; eval_density: Chamfer sampling density.
         sample_rays: rays of the sample-distance probe; psnr_pixels: pixels per held-out
-            view (`neus_l0.bench.runner.psnr_stride`).
+            view (`neus_l0.experiments.runner.psnr_stride`).
     """
 
     out_dir: Path
@@ -211,10 +211,11 @@ def score_run(run_dir: Path, scene_dir: Path, spec: ForkSpec) -> dict:
     """
     import torch
 
-    from neus_l0.bench.holdout import split_views, subset_scene
-    from neus_l0.bench.runner import heldout_psnr
-    from neus_l0.bench.sample_distance import SampleDistanceHook, SurfaceDistance
+    from neus_l0.data.split import split_views, subset_scene
+    from neus_l0.evaluation.sample_distance import SurfaceDistance
     from neus_l0.evaluation.score import ScoreSpec, score_mesh
+    from neus_l0.experiments.runner import heldout_psnr
+    from neus_l0.experiments.sample_hook import SampleDistanceHook
     from neus_l0.formats.open import open_scene
     from neus_l0.mesh.extract import export_mesh
     from neus_l0.mesh.from_run import mesh_from_run
@@ -298,10 +299,10 @@ def run_study(spec: ForkSpec, log: Callable[[str], None] = print) -> list[dict]:
     """Every (scene, seed) of `spec`, scene-major; their rows. OUT's fork.csv and summary.md
     are rewritten after each (scene, seed) from every run scored in OUT (`collect_rows`), so
     that several studies may share OUT (e.g. one per seed, side by side)."""
-    from neus_l0.bench.holdout import split_views
-    from neus_l0.bench.sweep import prepare_scene
+    from neus_l0.data.split import split_views
     from neus_l0.data.views import indexed_files
-    from neus_l0.study.fork_report import write_outputs
+    from neus_l0.experiments.fork_report import write_outputs
+    from neus_l0.experiments.sweep import prepare_scene
 
     spec.check()
     out = Path(spec.out_dir)

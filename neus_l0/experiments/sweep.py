@@ -3,14 +3,14 @@
 Layout of the sweep folder DIR::
 
     DIR/sweep.json                 the settings every run shares (checked on re-runs)
-    DIR/results.csv, results.json  one row per run (`neus_l0.bench.results.COLUMNS`)
+    DIR/results.csv, results.json  one row per run (`neus_l0.experiments.results.COLUMNS`)
     DIR/scenes/<scene>/            built-in scenes synthesised here (folders given as paths
                                    are linked here)
     DIR/runs/<scene>__<sampler>__<budget>s__seed<seed>/
                                    the training run (config.yaml, checkpoints/, metrics.jsonl
                                    with `sample_dist`), mesh.ply, eval.json, status.json,
                                    spec.json, log.txt
-    DIR/plots/                     figures and table.md (`neus_l0.bench.plots`)
+    DIR/plots/                     figures and table.md (`neus_l0.experiments.plots`)
 
 Fairness rule for budgets. Every run of a sweep uses the same config (networks, batch size,
 samples, and the learning-rate / annealing schedule over the config's `train.iters`), the
@@ -25,8 +25,8 @@ sample-distance hook's time is not counted (`neus_l0.train.loop.train`). A run t
 
 One sweep at a time: the sweep folder is locked (`neus_l0.run.lock.RunLock`, ``DIR/.lock``)
 for the whole sweep, so a second sweep into it is refused before it touches a run. SIGTERM
-or SIGINT stops the sweep: the running run is told (`neus_l0.bench.runner.ForwardSignals`;
-under Ray its task is cancelled, `neus_l0.bench.ray_backend`), checkpoints, is recorded as
+or SIGINT stops the sweep: the running run is told (`neus_l0.experiments.runner.ForwardSignals`;
+under Ray its task is cancelled, `neus_l0.experiments.ray_backend`), checkpoints, is recorded as
 interrupted, and no further run starts (`SweepOutcome.signal`).
 """
 
@@ -34,14 +34,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from neus_l0.atomic import atomic_write_json
-from neus_l0.bench.results import collect_rows, run_name, write_results
-from neus_l0.bench.runner import BENCH_OVERRIDES, ForwardSignals, RunSpec, run_in_subprocess
 from neus_l0.errors import NeusL0Error
+from neus_l0.experiments.results import collect_rows, run_name, write_results
+from neus_l0.experiments.runner import BENCH_OVERRIDES, ForwardSignals, RunSpec, run_in_subprocess
 from neus_l0.run.lock import RunLock
 from neus_l0.train.signals import StopOnSignal
 
@@ -77,14 +78,14 @@ def prepare_scene(entry: str, out_dir: Path, views: int, width: int, height: int
                   progress: bool = True) -> tuple[str, Path]:
     """Resolve one ``--scenes`` entry to (name, folder).
 
-    A built-in name (`neus_l0.data.synthetic.builtin_names`) that is not an existing path is
+    A built-in name (`neus_l0.synthetic.scene.builtin_names`) that is not an existing path is
     synthesised once into ``DIR/scenes/<name>/``; a folder is used in place (and linked as
     ``DIR/scenes/<basename>``).
 
     Raises:
         NeusL0Error: an unknown name, or an existing synthesised scene of another size.
     """
-    from neus_l0.data.synthetic import builtin_names, make_scene
+    from neus_l0.synthetic.scene import builtin_names, make_scene
 
     path = Path(entry)
     if path.is_dir():
@@ -201,7 +202,7 @@ class SweepSpec:
             None picks `device_defaults`.)
         sample_rays: rays of the sample-distance hook.
         psnr_pixels: at most this many pixels rendered per held-out view
-            (`neus_l0.bench.runner.psnr_stride`).
+            (`neus_l0.experiments.runner.psnr_stride`).
         backend: ``local`` (one run after another) or ``ray`` (Ray tasks).
         timeout: seconds after which a run's process is killed (None: no limit).
         snapshots: score each run at ``budget * k / snapshots`` seconds, k = 1..snapshots-1,
@@ -285,7 +286,7 @@ def run_sweep(spec: SweepSpec, *, progress: bool = True,
     Args:
         spec: the sweep.
         progress: tqdm bars: one over the runs, one for the running run's current step
-            (training, marching cubes, scoring, held-out views; `neus_l0.bench.progress`).
+            (training, marching cubes, scoring, held-out views; `neus_l0.experiments.progress`).
         on_row: called with each new row as its run finishes.
 
     Returns:
@@ -338,7 +339,7 @@ def _execute(specs: list[RunSpec], out_dir: Path, spec: SweepSpec, n_skipped: in
     """
     from tqdm import tqdm
 
-    from neus_l0.bench.progress import StepDisplay
+    from neus_l0.experiments.progress import StepDisplay
 
     bar = tqdm(total=len(specs) + n_skipped, initial=n_skipped, disable=not progress,
                unit="run", desc="bench", dynamic_ncols=True, position=0)
@@ -367,7 +368,7 @@ def _execute(specs: list[RunSpec], out_dir: Path, spec: SweepSpec, n_skipped: in
                     watch = display.poll if progress else None
                     finished(run_in_subprocess(run, spec.timeout, watch, stop), run.name)
         else:
-            from neus_l0.bench.ray_backend import run_with_ray
+            from neus_l0.experiments.ray_backend import run_with_ray
 
             bar.set_description(f"bench ({len(specs)} Ray tasks)")
             with StopOnSignal() as stop:
@@ -386,3 +387,101 @@ def is_done(run_dir: Path) -> bool:
         return False
     return isinstance(data, dict) and data.get("status") == "done"
 
+
+def check_spec(spec: SweepSpec) -> None:
+    """Refuse a sweep that cannot run, naming the flag of `neus-l0 bench`, before any work:
+    out-of-range numbers, unknown samplers, overrides the sweep sets itself, a hold-out that
+    leaves no training view, a mesh resolution that does not fit in memory.
+
+    Raises:
+        NeusL0Error: one line naming the flag and the rule.
+    """
+    from neus_l0.config.schema import SAMPLERS
+    from neus_l0.data.split import split_views
+    from neus_l0.mesh.extract import SPARSE_ABOVE
+    from neus_l0.mesh.memory import plan_extraction
+
+    _check_numbers(spec)
+    bad = [s for s in spec.samplers if s not in SAMPLERS]
+    if bad:
+        raise NeusL0Error(f"--samplers: unknown {', '.join(bad)} (choose from "
+                          f"{', '.join(SAMPLERS)})")
+    owned = [o for o in spec.overrides
+             if o.split("=", 1)[0] in ("sampler", "train.seed", "train.max_seconds")]
+    if owned:
+        raise NeusL0Error(f"{', '.join(owned)}: set by the sweep (use --samplers, --seeds, "
+                          "--seconds)")
+    if any(not Path(s).is_dir() for s in spec.scenes):
+        split_views(spec.views, spec.holdout)  # built-in scenes: some view must be left
+    plan_extraction("sparse" if spec.resolution > SPARSE_ABOVE else "dense", spec.resolution)
+
+
+def _check_numbers(spec: SweepSpec) -> None:
+    """The numeric rules of `check_spec`."""
+    def refuse(flag: str, value, rule: str):
+        raise NeusL0Error(f"{flag} {value}: {rule}")
+
+    for b in spec.budgets:
+        if not (math.isfinite(b) and b > 0):
+            refuse("--seconds", f"{b:g}", "budgets must be positive, finite seconds")
+    for seed in spec.seeds:
+        if not 0 <= seed < 2**63:
+            refuse("--seeds", seed, "seeds must be 0 or more (below 2^63)")
+    if spec.resolution is not None and spec.resolution < 8:
+        refuse("--resolution", spec.resolution, "must be at least 8")
+    if spec.threads is not None and spec.threads < 0:
+        refuse("--threads", spec.threads, "must be 0 (torch's default) or more")
+    if spec.views is not None and spec.views < 1:
+        refuse("--views", spec.views, "must be at least 1")
+    for flag, value in (("--width", spec.width), ("--height", spec.height)):
+        if value is not None and value < 8:
+            refuse(flag, value, "must be at least 8 pixels")
+    if spec.holdout < 0 or spec.holdout == 1:
+        refuse("--holdout", spec.holdout, "must be 0 (none) or K >= 2 (1 holds out every view)")
+    if spec.eval_density is not None and not (math.isfinite(spec.eval_density)
+                                              and spec.eval_density > 0):
+        refuse("--eval-density", f"{spec.eval_density:g}", "must be a positive, finite "
+               "distance in world units")
+    if spec.sample_rays < 1:
+        refuse("--sample-rays", spec.sample_rays, "must be at least 1")
+    if spec.psnr_pixels < 1:
+        refuse("--psnr-pixels", spec.psnr_pixels, "must be at least 1")
+    if spec.timeout is not None and not (math.isfinite(spec.timeout) and spec.timeout > 0):
+        refuse("--timeout", f"{spec.timeout:g}", "must be positive, finite seconds")
+    if spec.snapshots < 0:
+        refuse("--snapshots", spec.snapshots, "must be 0 or more")
+
+
+def finish_sweep(out: Path, outcome: SweepOutcome, plots: bool = True) -> int:
+    """Print what the sweep did and draw ``out/plots/`` (unless a signal stopped it or
+    `plots` is off); the exit status: the signal's code (143, 130) when one stopped it, 1 when
+    a run of this call failed, else 0."""
+    this_call = {f"runs/{name}" for name in outcome.ran}
+    rows = [r for r in outcome.rows if r["run_dir"] in this_call]
+    failed = [r for r in rows if r["status"] == "failed"]
+    stopped = [r for r in rows if r["status"] == "interrupted"]
+    done = [r for r in rows if r["status"] == "done"]
+    print(f"{len(done)} runs done now, {len(outcome.skipped)} skipped (done before), "
+          f"{len(failed)} failed, {len(stopped)} interrupted in {out}")
+    for r in failed + stopped:
+        print(f"  {r['status']}: {r['run_dir']}: {r['error']}")
+    print(f"results: {out / 'results.csv'}, {out / 'results.json'}")
+    if outcome.signal:
+        names = ", ".join(r["run_dir"] for r in stopped) or "no run"
+        print(f"neus-l0 bench: stopped by {outcome.signal}: {names} recorded as interrupted, "
+              f"{len(outcome.not_started)} not started; run the same command again to go on",
+              file=sys.stderr)
+        return outcome.exit_code
+    if plots:
+        from neus_l0.experiments.plots import write_plots
+
+        write_plots(out, outcome.rows)
+        print(f"plots:   {out / 'plots'}/ (chamfer_vs_time.png, psnr_vs_time.png, "
+              "sample_distance.png, table.md)")
+    if failed:
+        logs = (f"its log: {out / failed[0]['run_dir'] / 'log.txt'}" if len(failed) == 1
+                else f"their logs: {out / 'runs'}/<run>/log.txt")
+        print(f"neus-l0 bench: {len(failed)} of {len(rows)} runs failed: "
+              f"{', '.join(Path(r['run_dir']).name for r in failed)}; {logs}", file=sys.stderr)
+        return 1
+    return 0

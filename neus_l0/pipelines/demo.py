@@ -1,0 +1,234 @@
+"""The demo's pipeline (`neus-l0 demo`): render the built-in scene, train on it, extract the
+mesh, score it against the exact ground truth and draw both side by side.
+
+`run_demo` does the work and returns a `DemoResult`; the command only parses and prints.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+#: Size of the demo scene (views, width, height): a step costs the same at any image size,
+#: and a larger image gives the step more distinct pixels to draw from.
+DEMO_SCENE = {"views": 24, "width": 200, "height": 150}
+#: Marching-cubes resolution of the demo mesh.
+DEMO_RESOLUTION = 96
+#: Wall-clock target of the whole demo (seconds); training gets what is left of it after the
+#: scene, minus `DEMO_RESERVE_S` for meshing, scoring and drawing (unless
+#: `train.max_seconds=...` is given on the command line).
+DEMO_BUDGET_S = 148.0
+DEMO_RESERVE_S = 14.0
+#: Training config of the demo (`confs/demo.yaml`).
+DEMO_CONF = "demo"
+
+
+@dataclasses.dataclass
+class DemoOptions:
+    """What `neus-l0 demo` was asked for (the command's flags, already checked)."""
+
+    out: Path
+    conf: str = DEMO_CONF
+    overrides: list[str] = dataclasses.field(default_factory=list)
+    device: str | None = None
+    threads: int | None = None
+    resolution: int = DEMO_RESOLUTION
+    quiet: bool = False
+
+
+@dataclasses.dataclass
+class DemoResult:
+    """What the demo made: ``metrics`` is what ``OUT/metrics.json`` holds; ``signal`` is set
+    (and the rest empty) when a signal stopped training, with ``exit_code`` to return."""
+
+    out: Path
+    metrics: dict | None = None
+    signal: str | None = None
+    exit_code: int = 0
+    iteration: int = 0
+    checkpoint: Path | None = None
+
+    @property
+    def paths(self) -> dict[str, Path]:
+        """The outputs by name: scene, run, mesh, metrics, picture."""
+        return {"scene": self.out / "scene", "run": self.out / "run",
+                "mesh": self.out / "mesh.ply", "metrics": self.out / "metrics.json",
+                "picture": self.out / "comparison.png"}
+
+
+def score_demo_mesh(mesh_path, scene_dir) -> dict:
+    """Chamfer report (`neus_l0.evaluation.score.score_mesh`) of the demo mesh, sampled
+    about 150 points across the object so that scoring takes seconds."""
+    import numpy as np
+    import trimesh
+
+    from neus_l0.evaluation.score import ScoreSpec, score_mesh
+
+    gt = trimesh.load(Path(scene_dir) / "gt_mesh.ply", force="mesh")
+    extent = float(np.ptp(np.asarray(gt.vertices), axis=0).max())
+    return score_mesh(mesh_path, ScoreSpec(scene=Path(scene_dir), density=extent / 150.0),
+                      log=lambda _msg: None)
+
+
+def run_demo(opts: DemoOptions) -> DemoResult:
+    """The whole demo into ``opts.out``: scene, run, mesh, score, picture and metrics.json.
+
+    Prints a progress line per stage. A second call on the same folder reuses the scene and
+    resumes (or reuses) the run.
+
+    Raises:
+        NeusL0Error: a bad config, or a run in ``opts.out`` trained with other settings.
+    """
+    import torch
+
+    from neus_l0.atomic import atomic_write_json
+    from neus_l0.config.load import load_config
+    from neus_l0.device import free_cpu_threads, pick_device
+
+    cfg = load_config(opts.conf, opts.overrides)  # a bad config fails before any work
+    device = pick_device(opts.device)
+    opts.out.mkdir(parents=True, exist_ok=True)
+    threads = free_cpu_threads(opts.threads)
+    torch.set_num_threads(threads)
+    timings: dict[str, float] = {}
+    t_all = time.monotonic()
+    result = DemoResult(out=opts.out)
+    paths = result.paths
+
+    t0 = time.monotonic()
+    _make_demo_scene(paths["scene"], threads, opts.quiet)
+    timings["scene_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    if not any(o.startswith("train.max_seconds=") for o in opts.overrides):
+        left = DEMO_BUDGET_S - (time.monotonic() - t_all) - DEMO_RESERVE_S
+        cfg.train.max_seconds = max(30.0, left)
+    trained = _train_demo(opts, cfg, paths["scene"], paths["run"], device, threads)
+    timings["train_s"] = time.monotonic() - t0
+    if trained.signal:
+        return dataclasses.replace(result, signal=trained.signal, exit_code=trained.exit_code,
+                                   iteration=trained.iteration, checkpoint=trained.checkpoint)
+
+    mesh, score = _mesh_score_draw(opts, paths, device, timings)
+    timings["total_s"] = time.monotonic() - t_all
+    metrics = {
+        "chamfer": score,
+        "iterations": trained.iteration,
+        "train_final": trained.metrics,
+        "mesh": {"path": str(paths["mesh"]), "vertices": len(mesh.vertices),
+                 "faces": len(mesh.faces), "resolution": opts.resolution},
+        "sampler": cfg.sampler.name,
+        "conf": str(opts.conf),
+        "device": device,
+        "threads": threads,
+        "timings": timings,
+    }
+    atomic_write_json(paths["metrics"], metrics)
+    return dataclasses.replace(result, metrics=metrics, iteration=trained.iteration)
+
+
+def _make_demo_scene(scene_dir: Path, threads: int, quiet: bool) -> None:
+    """Render the built-in scene into `scene_dir` unless it is there already."""
+    from neus_l0.synthetic.scene import make_scene
+
+    if (scene_dir / "scene.json").is_file():
+        print(f"[1/4] reusing the scene in {scene_dir}", flush=True)
+        return
+    print(f"[1/4] rendering the demo scene into {scene_dir} ...", flush=True)
+    make_scene("demo", scene_dir, seed=0, progress=not quiet, threads=threads, **DEMO_SCENE)
+
+
+def _mesh_score_draw(opts: DemoOptions, paths: dict[str, Path], device: str,
+                     timings: dict[str, float]):
+    """Stages 3 and 4: the mesh, its Chamfer report and the picture (timed into
+    `timings`). Returns the mesh and the report."""
+    from neus_l0.mesh.extract import export_mesh
+    from neus_l0.mesh.from_run import mesh_from_run
+
+    t0 = time.monotonic()
+    print(f"[3/4] extracting the mesh at {opts.resolution}^3 ...", flush=True)
+    mesh = mesh_from_run(paths["run"], opts.resolution, device, progress=not opts.quiet).mesh
+    mesh_path = export_mesh(mesh, paths["mesh"])
+    timings["mesh_s"] = time.monotonic() - t0
+
+    t0 = time.monotonic()
+    print("[4/4] scoring and drawing ...", flush=True)
+    score = score_demo_mesh(mesh_path, paths["scene"])
+    timings["score_s"] = time.monotonic() - t0
+    t0 = time.monotonic()
+    draw_comparison(paths["scene"], mesh, paths["picture"], score)
+    timings["picture_s"] = time.monotonic() - t0
+    return mesh, score
+
+
+def _train_demo(opts: DemoOptions, cfg, scene_dir: Path, run_dir: Path, device: str,
+                threads: int):
+    """Train (or resume) the demo's run: `train.compile: auto` resolved first, so that a
+    re-run is checked against the settings the run really used."""
+    from neus_l0.formats.neus import load_scene
+    from neus_l0.run.checkpoints import checkpoint_iteration, latest_checkpoint
+    from neus_l0.train.compile_auto import resolve_compile
+    from neus_l0.train.loop import train
+
+    scene = load_scene(scene_dir, downscale=cfg.data.downscale, device=device)
+    newest = latest_checkpoint(run_dir)
+    resume = newest is not None
+    cfg, line = resolve_compile(cfg, device, checkpoint_iteration(newest) if resume else 0,
+                                run_dir)
+    if line:
+        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
+    if resume:
+        check_same_settings(run_dir, cfg)
+    print(f"[2/4] training ({cfg.train.iters} iterations at most, "
+          f"{cfg.train.max_seconds:.0f} s budget, sampler {cfg.sampler.name}, {threads} "
+          f"thread{'s' if threads > 1 else ''}, {'compiled' if cfg.train.compile else 'eager'})"
+          f" into {run_dir}{' (resuming)' if resume else ''} ...", flush=True)
+    return train(scene, cfg, run_dir, device=device, resume=resume, progress=not opts.quiet)
+
+
+def draw_comparison(scene_dir, mesh, path, score: dict | None) -> Path:
+    """Input view | ground-truth mesh | reconstruction, from the scene's first camera."""
+    import cv2
+    import trimesh
+
+    from neus_l0.data.cameras import read_world_mats, scale_projection
+    from neus_l0.figures.raster import raster_render, side_by_side
+
+    scene_dir = Path(scene_dir)
+    images = sorted((scene_dir / "image").glob("*.png"))
+    img = cv2.imread(str(images[0]))[..., ::-1] / 255.0
+    h, w = img.shape[:2]
+    up = max(1, 300 // w)  # render the meshes at about 300 pixels wide
+    P = scale_projection(read_world_mats(scene_dir)[0], up)
+    gt = trimesh.load(scene_dir / "gt_mesh.ply", force="mesh")
+    gt_shade = raster_render(gt, P, w * up, h * up)["shade"]
+    rec_shade = raster_render(mesh, P, w * up, h * up)["shade"]
+    title = None
+    if score and all(score.get(k) is not None for k in ("accuracy", "completeness", "overall")):
+        title = (f"Chamfer: accuracy {score['accuracy']:.2f}, completeness "
+                 f"{score['completeness']:.2f}, overall {score['overall']:.2f} (world units)")
+    return side_by_side(path, [("input view", img), ("ground truth", gt_shade),
+                               ("reconstruction", rec_shade)], title)
+
+
+def check_same_settings(run_dir: Path, cfg) -> None:
+    """A re-run of the demo resumes its run: only with the settings it started with (beyond
+    length and logging), or it would label an `l0` run `hvs`.
+
+    Raises:
+        NeusL0Error: naming the keys that differ and the way out.
+    """
+    from neus_l0.config.load import load_config
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.run.resumes import changed_keys, guarded_keys, recorded_overrides
+
+    if not (run_dir / "config.yaml").is_file():
+        return
+    before = load_config(run_dir / "config.yaml", recorded_overrides(run_dir))
+    guarded = guarded_keys(changed_keys(before, cfg))
+    if guarded:
+        raise NeusL0Error(f"{run_dir}: holds a demo run trained with other settings "
+                          f"({', '.join(guarded)}); choose another --out, or delete {run_dir} "
+                          "to start that run over")

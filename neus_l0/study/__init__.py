@@ -1,1 +1,0 @@
-"""Studies that measure one part of the method outside training (`neus-l0 study`)."""
