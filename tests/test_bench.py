@@ -7,6 +7,7 @@ import csv
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -367,7 +368,7 @@ def test_sample_distance_hook_is_zero_for_samples_on_the_surface(monkeypatch):
     def fake_render(model, origins, dirs, render_cfg, sampler, **kwargs):
         hits = _sphere_hits(origins.double(), dirs.double(), 0.5)  # (B, 2)
         z = hits.repeat(1, render_cfg.n_importance // 2) + offset["value"]
-        return {"t_fine": z}  # (B, n_importance): every fine sample on the sphere
+        return SimpleNamespace(t_fine=z)  # (B, n_importance): every sample on the sphere
 
     monkeypatch.setattr("neus_l0.render.volume.render_rays", fake_render)
     hook = SampleDistanceHook(surface, n_rays=64)

@@ -13,6 +13,7 @@ from neus_l0.bounds.points import PointBound
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import BackgroundConfig, OccupancyConfig, RenderConfig
 from neus_l0.fields.background import BackgroundNeRF
+from neus_l0.sampling.upsample import build_sampler
 from neus_l0.train.loop import build_run_state
 from neus_l0.train.step import update_occupancy
 
@@ -89,7 +90,7 @@ def test_background_samples_start_outside_the_sphere_when_a_bound_narrows_rays(s
     o = 3.0 * o / o.norm(dim=-1, keepdim=True)
     d = torch.nn.functional.normalize(-o + 0.2 * torch.randn(64, 3, generator=g), dim=-1)
     cfg = RenderConfig(n_samples=8, n_importance=8, up_sample_steps=1, n_outside=4)
-    rendering.render_rays(model, o, d, cfg, "hvs", bounds=(box,))
+    rendering.render_rays(model, o, d, cfg, build_sampler("hvs"), bounds=(box,))
     exit_ = sphere_chord(o, d)[1]
     assert bool((seen["far"] >= exit_ - 1e-6).all())
     pts = o[:, None] + d[:, None] * real(seen["far"], 4, 8, False)[..., None]

@@ -4,6 +4,7 @@ import torch
 
 from neus_l0.config.schema import RenderConfig
 from neus_l0.render.volume import render_rays, section_alpha
+from neus_l0.sampling.upsample import build_sampler
 
 
 class StartsAt:
@@ -55,10 +56,10 @@ def test_a_ray_entering_inside_the_object_is_opaque(sphere_model):
     cfg = RenderConfig(n_samples=32, n_importance=32, up_sample_steps=2,
                        cull_outside_sphere=True)
     # bounds that start inside the sphere of radius 0.5 (t = 3 is the centre)
-    out = render_rays(model, o, d, cfg, "hvs", bounds=[StartsAt(2.8)])
+    out = render_rays(model, o, d, cfg, build_sampler("hvs"), bounds=[StartsAt(2.8)])
     assert out.weight_sum[0] > 0.99  # would be ~0 without the entry term: no crossing seen
     assert out.weight_sum[1] < 0.01  # misses the sphere: transparent
     # and bounds that start outside the object change nothing
-    ref = render_rays(model, o, d, cfg, "hvs")
-    near = render_rays(model, o, d, cfg, "hvs", bounds=[StartsAt(2.2)])
+    ref = render_rays(model, o, d, cfg, build_sampler("hvs"))
+    near = render_rays(model, o, d, cfg, build_sampler("hvs"), bounds=[StartsAt(2.2)])
     assert (near.weight_sum - ref.weight_sum).abs().max() < 1e-3

@@ -7,6 +7,7 @@ from neus_l0.bounds.pixel_pool import hull_silhouette, reachable_pixels
 from neus_l0.bounds.spans import ray_bounds
 from neus_l0.config.schema import RenderConfig
 from neus_l0.data.rays import image_rays
+from neus_l0.sampling.upsample import build_sampler
 
 
 def _brute_force(scene, cfg, bounds):
@@ -88,7 +89,8 @@ def test_the_pool_keeps_each_pixels_span_and_a_step_may_use_it(sphere_model, sph
     pick = torch.arange(0, pool.pixels.numel(), 7)
     o, d = rays["origins"][pick], rays["dirs"][pick]
     with torch.no_grad():
-        with_hull = render_rays(model, o, d, cfg, "hvs", bounds=(hull,))
-        looked_up = render_rays(model, o, d, cfg, "hvs", span=span[pick])
+        with_hull = render_rays(model, o, d, cfg, build_sampler("hvs"), bounds=(hull,))
+        looked_up = render_rays(model, o, d, cfg, build_sampler("hvs"), span=span[pick])
     for key in ("color", "weight_sum", "depth", "t"):
-        torch.testing.assert_close(looked_up[key], with_hull[key], rtol=0, atol=0)
+        torch.testing.assert_close(getattr(looked_up, key), getattr(with_hull, key),
+                                   rtol=0, atol=0)

@@ -124,20 +124,20 @@ def test_fine_samples_cluster_at_an_analytic_sphere(sphere_model, sampler):
     model = sphere_model()
     cfg = RenderConfig()
     o, d, hit, t_hit = rays_at_sphere(256)
-    out = render_rays(model, o, d, cfg, sampler, create_graph=False)
-    for k, v in out.items():
-        assert torch.isfinite(v).all(), k
-    assert out["t_fine"].shape == (256, 64) and out["t"].shape == (256, 128)
-    err = (out["t_fine"][hit] - t_hit[hit, None]).abs()
+    out = render_rays(model, o, d, cfg, build_sampler(sampler), create_graph=False)
+    for f in dataclasses.fields(out):
+        assert torch.isfinite(getattr(out, f.name)).all(), f.name
+    assert out.t_fine.shape == (256, 64) and out.t.shape == (256, 128)
+    err = (out.t_fine[hit] - t_hit[hit, None]).abs()
     # most fine samples lie within a few 1/inv_s of the first surface hit
     assert (err < 0.02).float().mean() > 0.5, sampler
     assert err.median() < 0.02
     # the rendered depth and opacity see the sphere
-    assert (out["depth"][hit, 0] - t_hit[hit]).abs().mean() < 5e-3
-    assert (out["weight_sum"][hit] > 0.95).all()
-    assert (out["weight_sum"][disc_miss(o, d)] < 0.05).all()
+    assert (out.depth[hit, 0] - t_hit[hit]).abs().mean() < 5e-3
+    assert (out.weight_sum[hit] > 0.95).all()
+    assert (out.weight_sum[disc_miss(o, d)] < 0.05).all()
     # normals of hit rays point back to the camera and are about unit length
-    n = out["normal"][hit]
+    n = out.normal[hit]
     cos = (n * d[hit]).sum(-1)
     assert (cos < 0).all() and cos.mean() < -0.8
 
@@ -150,8 +150,9 @@ def test_l0_midpoint_default_at_least_as_tight_as_endpoint(sphere_model):
     for placement in ("midpoint", "endpoint"):
         from neus_l0.config.schema import SamplerConfig
 
-        out = render_rays(model, o, d, RenderConfig(), SamplerConfig(placement=placement))
-        frac[placement] = ((out["t_fine"][hit] - t_hit[hit, None]).abs() < 0.005).float().mean()
+        out = render_rays(model, o, d, RenderConfig(),
+                          build_sampler(SamplerConfig(placement=placement)))
+        frac[placement] = ((out.t_fine[hit] - t_hit[hit, None]).abs() < 0.005).float().mean()
     assert frac["midpoint"] >= frac["endpoint"] - 0.01
 
 
@@ -166,13 +167,13 @@ def test_render_rays_gradients_and_background():
     cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2, n_outside=8)
     o, d, _, _ = rays_at_sphere(32)
     g = torch.Generator().manual_seed(0)
-    out = render_rays(model, o, d, cfg, "l0", cos_anneal_ratio=0.5, perturb=True,
+    out = render_rays(model, o, d, cfg, build_sampler("l0"), cos_anneal_ratio=0.5, perturb=True,
                       generator=g, create_graph=True)
-    assert out["weights"].shape == (32, 32 + 8)
-    assert out["gradients"].shape == (32, 32, 3)
+    assert out.weights.shape == (32, 32 + 8)
+    assert out.gradients.shape == (32, 32, 3)
     for f in dataclasses.fields(out):
         assert torch.isfinite(getattr(out, f.name)).all(), f.name
-    loss = out["color"].sum() + eikonal(out.gradients, out.eikonal_mask)
+    loss = out.color.sum() + eikonal(out.gradients, out.eikonal_mask)
     loss.backward()
     for name, p in model.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
@@ -182,8 +183,8 @@ def test_render_rays_gradients_and_background():
 def test_render_is_deterministic_given_the_generator(sphere_model):
     model = sphere_model()
     o, d, _, _ = rays_at_sphere(16)
-    outs = [render_rays(model, o, d, RenderConfig(), "l0", perturb=True,
-                        generator=torch.Generator().manual_seed(3))["t"] for _ in range(2)]
+    outs = [render_rays(model, o, d, RenderConfig(), build_sampler("l0"), perturb=True,
+                        generator=torch.Generator().manual_seed(3)).t for _ in range(2)]
     assert torch.equal(outs[0], outs[1])
 
 
@@ -191,7 +192,8 @@ def test_render_image_shapes(sphere_model):
     model = sphere_model()
     o, d, _, _ = rays_at_sphere(12)
     out = render_image(model, o.reshape(3, 4, 3), d.reshape(3, 4, 3),
-                       RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2), chunk=5)
+                       RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2),
+                       build_sampler("l0"), chunk=5)
     assert out["color"].shape == (3, 4, 3) and out["depth"].shape == (3, 4)
     assert not out["color"].requires_grad
 
@@ -236,24 +238,24 @@ def test_grid_gives_the_same_render_on_rays_that_hit(sphere_model, sampler):
     torch.manual_seed(0)
     model = sphere_model()
     o, d, hit, t_hit = rays_at_sphere(256)
-    ref = render_rays(model, o, d, RenderConfig(), sampler)
+    ref = render_rays(model, o, d, RenderConfig(), build_sampler(sampler))
     grid = sphere_grid(model)
     assert grid.fraction_occupied() < 0.1
     for compact in (True, False):
         cfg = RenderConfig(cull_outside_sphere=True)
         cfg.occupancy.compact = compact
-        out = render_rays(model, o, d, cfg, sampler, bounds=(grid,))
-        for k, v in out.items():
-            assert torch.isfinite(v).all(), k
-        assert out["active"][hit].all()
-        assert (out["color"][hit] - ref["color"][hit]).abs().max() < 1e-3
-        assert (out["depth"][hit] - ref["depth"][hit]).abs().max() < 2e-3
-        assert (out["depth"][hit, 0] - t_hit[hit]).abs().mean() < 5e-3
-        assert (out["weight_sum"][hit] - ref["weight_sum"][hit]).abs().max() < 2e-3
+        out = render_rays(model, o, d, cfg, build_sampler(sampler), bounds=(grid,))
+        for f in dataclasses.fields(out):
+            assert torch.isfinite(getattr(out, f.name)).all(), f.name
+        assert out.active[hit].all()
+        assert (out.color[hit] - ref.color[hit]).abs().max() < 1e-3
+        assert (out.depth[hit] - ref.depth[hit]).abs().max() < 2e-3
+        assert (out.depth[hit, 0] - t_hit[hit]).abs().mean() < 5e-3
+        assert (out.weight_sum[hit] - ref.weight_sum[hit]).abs().max() < 2e-3
         # samples only inside the tightened span: none more than the band (about
         # 1.5 half-diagonals + 6 / s + a dilated cell + a lookup step) before the surface
-        assert (out["t"][hit].min(dim=-1).values > t_hit[hit] - 0.25).all()
-        assert (ref["t"][hit].min(dim=-1).values < t_hit[hit] - 0.4).all()
+        assert (out.t[hit].min(dim=-1).values > t_hit[hit] - 0.25).all()
+        assert (ref.t[hit].min(dim=-1).values < t_hit[hit] - 0.4).all()
 
 
 def test_rays_that_cross_no_occupied_cell_do_no_sdf_work(counting_model):
@@ -262,27 +264,29 @@ def test_rays_that_cross_no_occupied_cell_do_no_sdf_work(counting_model):
     # rays through the unit sphere that pass the r = 0.5 sphere at distance >= 0.8
     o = torch.tensor([[-3.0, 0.8, 0.0], [-3.0, 0.0, -0.85], [0.9, -3.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    out = render_rays(model, o, d, RenderConfig(), "l0", bounds=(grid,), create_graph=True)
-    assert not out["active"].any()
-    assert torch.equal(out["weight_sum"], torch.zeros(3, 1))
-    assert torch.equal(out["color"], torch.zeros(3, 3))
+    out = render_rays(model, o, d, RenderConfig(), build_sampler("l0"), bounds=(grid,),
+                      create_graph=True)
+    assert not out.active.any()
+    assert torch.equal(out.weight_sum, torch.zeros(3, 1))
+    assert torch.equal(out.color, torch.zeros(3, 3))
     assert eikonal(out.gradients, out.eikonal_mask) == 0
     # mixed with hitting rays, only those are evaluated
     o2 = torch.cat([o, torch.tensor([[-3.0, 0.0, 0.0]])])
     d2 = torch.cat([d, torch.tensor([[1.0, 0.0, 0.0]])])
     cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2)
-    out = render_rays(model, o2, d2, cfg, "l0", bounds=(grid,))
-    assert out["active"].tolist() == [False, False, False, True]
+    out = render_rays(model, o2, d2, cfg, build_sampler("l0"), bounds=(grid,))
+    assert out.active.tolist() == [False, False, False, True]
     # render_rays keeps every batch's shape (inactive rays are masked); render_image skips
     # their networks: only the hitting ray is evaluated
     per_ray = 16 + 8 + 32  # coarse + one intermediate round + the final pass
     model.sdf.points = 0
-    img = render_image(model, o2.reshape(2, 2, 3), d2.reshape(2, 2, 3), cfg, "l0",
+    img = render_image(model, o2.reshape(2, 2, 3), d2.reshape(2, 2, 3), cfg, build_sampler("l0"),
                        bounds=(grid,))
     assert model.sdf.points == per_ray
     assert torch.equal(img["weight_sum"].reshape(-1)[:3], torch.zeros(3))
     model.sdf.points = 0
-    render_image(model, o.reshape(1, 3, 3), d.reshape(1, 3, 3), cfg, "l0", bounds=(grid,))
+    render_image(model, o.reshape(1, 3, 3), d.reshape(1, 3, 3), cfg, build_sampler("l0"),
+                 bounds=(grid,))
     assert model.sdf.points == 0
 
 
@@ -292,15 +296,15 @@ def test_rays_missing_the_sphere_get_no_samples(counting_model):
     d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # miss, behind, hit
     cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2,
                        cull_outside_sphere=True)
-    out = render_rays(model, o, d, cfg, "l0")
-    assert out["active"].tolist() == [False, False, True]
+    out = render_rays(model, o, d, cfg, build_sampler("l0"))
+    assert out.active.tolist() == [False, False, True]
     model.sdf.points = 0
-    render_image(model, o.reshape(1, 3, 3), d.reshape(1, 3, 3), cfg, "l0")
+    render_image(model, o.reshape(1, 3, 3), d.reshape(1, 3, 3), cfg, build_sampler("l0"))
     assert model.sdf.points == 16 + 8 + 32
-    assert torch.equal(out["weight_sum"][:2], torch.zeros(2, 1))
-    assert out["weight_sum"][2] > 0.99
+    assert torch.equal(out.weight_sum[:2], torch.zeros(2, 1))
+    assert out.weight_sum[2] > 0.99
     # the hitting ray's coarse samples lie on its chord of the unit sphere, [2, 4]
-    z = out["t"][2]
+    z = out.t[2]
     assert z.min() >= 2.0 - 1e-5 and z.max() <= 4.0 + 1e-5
 
 
@@ -320,7 +324,7 @@ def test_no_background_network_with_masks(sphere_model):
     model = sphere_model()
     model.background = Forbidden()
     o, d, _, _ = rays_at_sphere(8)
-    render_rays(model, o, d, RenderConfig(n_outside=0), "l0")
+    render_rays(model, o, d, RenderConfig(n_outside=0), build_sampler("l0"))
 
 
 def test_culling_keeps_the_background_model_for_missed_rays():
@@ -335,10 +339,10 @@ def test_culling_keeps_the_background_model_for_missed_rays():
                        cull_outside_sphere=True)
     o = torch.tensor([[-3.0, 1.5, 0.0], [-3.0, 0.0, 0.0]])
     d = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-    out = render_rays(model, o, d, cfg, "l0", create_graph=True)
-    assert out["active"].tolist() == [False, True]
-    assert (out["weights"][0, -8:] > 0).all()  # the background still renders the miss
-    out["color"].sum().backward()
+    out = render_rays(model, o, d, cfg, build_sampler("l0"), create_graph=True)
+    assert out.active.tolist() == [False, True]
+    assert (out.weights[0, -8:] > 0).all()  # the background still renders the miss
+    out.color.sum().backward()
     assert model.background.rgb.weight.grad.abs().sum() > 0
 
 

@@ -170,7 +170,8 @@ def main() -> None:
                         .manual_seed(2))
         with torch.no_grad():
             grid = (r["grid"],) if r["grid"] is not None else ()
-            out = render_rays(r["model"], b["origins"], b["dirs"], cfg.render, cfg.sampler,
+            out = render_rays(r["model"], b["origins"], b["dirs"], cfg.render,
+                              build_sampler(cfg.sampler),
                               bounds=grid)
         r["active"] = out.active.float().mean().item()
         r["per_ray"] = out.t.shape[1]

@@ -186,10 +186,12 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int, pixels: in
 
     from neus_l0.render.views import psnr
     from neus_l0.render.volume import render_image
+    from neus_l0.sampling.upsample import build_sampler
     from neus_l0.train.schedule import cos_anneal_ratio
     from neus_l0.train.validation import validation_views
 
     ds = psnr_stride(scene.height, scene.width, cfg.train.val_downscale, pixels)
+    sampler = build_sampler(cfg.sampler)
     step = f"held-out PSNR (1/{ds} of each axis)"
     out = []
     with torch.no_grad():
@@ -197,7 +199,7 @@ def heldout_psnr(model, scene, views: list[int], cfg, iteration: int, pixels: in
             if report is not None:
                 report(step, i, len(views), "view")
             o, d, rgb = validation_views(scene, v, ds)
-            img = render_image(model, o, d, cfg.render, cfg.sampler,
+            img = render_image(model, o, d, cfg.render, sampler,
                                cos_anneal_ratio(iteration, cfg.train.anneal_end))["color"]
             fg = (scene.masks[v, ::ds, ::ds] > 0.5).cpu().numpy() if scene.has_masks else None
             out.append(psnr(img.clamp(0, 1).cpu().numpy(), rgb.cpu().numpy(),

@@ -60,6 +60,7 @@ class SampleDistanceHook:
 
     def __call__(self, iteration: int, model, scene: Scene, cfg, force: bool = False) -> dict:
         from neus_l0.render.volume import render_rays
+        from neus_l0.sampling.upsample import build_sampler
         from neus_l0.train.schedule import cos_anneal_ratio
 
         if not force and not self.due(iteration):
@@ -67,9 +68,9 @@ class SampleDistanceHook:
         o, d = self.rays(scene)
         if len(o) == 0 or cfg.render.n_importance == 0:
             return {"sample_dist": None}
-        out = render_rays(model, o, d, cfg.render, cfg.sampler,
+        out = render_rays(model, o, d, cfg.render, build_sampler(cfg.sampler),
                           cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end),
                           perturb=False)
-        dist = self.surface(fine_points_world(o, d, out["t_fine"], scene.scale_mat))
+        dist = self.surface(fine_points_world(o, d, out.t_fine, scene.scale_mat))
         value = float(np.mean(dist))
         return {"sample_dist": value if math.isfinite(value) else None}

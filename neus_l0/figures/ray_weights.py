@@ -225,8 +225,8 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
             x, pdf = exp_interpolation(nodes[0].double(), wb)
         D = (t[0, 1:] - t[0, :-1]).double()
         hvs = w[0].double() / (w[0].double().sum() * D)
-        fine_all = render_rays(model, o, d, r, sampler)["t_fine"][0] if r.n_importance else \
-            torch.zeros(0)
+        fine_all = (render_rays(model, o, d, r, build_sampler(sampler)).t_fine[0]
+                    if r.n_importance else torch.zeros(0))
         # the model's surface: first sign change of its SDF on a dense grid
         t_dense = torch.linspace(float(near), float(far), 4000)[None]  # (1, 4000)
         dense = model.sdf.sdf((o[:, None] + d[:, None] * t_dense[..., None]).reshape(-1, 3))

@@ -19,6 +19,7 @@ from neus_l0.config.schema import Config
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.fields.model import NeuSModel
 from neus_l0.render.volume import render_image
+from neus_l0.sampling.upsample import build_sampler
 
 #: PSNR of an exact match: the mean squared error is floored at 1e-10, as the bench's
 #: held-out PSNR does, so a perfect image scores 100 dB (finite, valid JSON).
@@ -65,8 +66,8 @@ def render_view(model: NeuSModel, K: torch.Tensor, c2w: torch.Tensor, size: tupl
     """
     H, W = size
     o, d = pixel_rays(K, c2w, pixel_grid(H, W, K.device).reshape(-1, 2))
-    out = render_image(model, o.reshape(H, W, 3), d.reshape(H, W, 3), cfg.render, cfg.sampler,
-                       cos_anneal_ratio, bounds=bounds)
+    out = render_image(model, o.reshape(H, W, 3), d.reshape(H, W, 3), cfg.render,
+                       build_sampler(cfg.sampler), cos_anneal_ratio, bounds=bounds)
     rot = c2w[:3, :3]  # camera -> world
     normal = out["normal"] @ rot  # (H, W, 3) world -> camera: n^T R = (R^T n)^T
     depth = out["depth"] * (d.reshape(H, W, 3) @ rot[:, 2])  # ray length -> camera z

@@ -21,10 +21,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from neus_l0.bounds.spans import RayBounds, _ray_bounds, ray_bounds
-from neus_l0.config.schema import RenderConfig, SamplerConfig
+from neus_l0.config.schema import RenderConfig
 from neus_l0.fields.model import NeuSModel
 from neus_l0.fields.sdf import sdf_and_gradient
-from neus_l0.sampling.upsample import Sampler, build_sampler, transmittance, up_sample
+from neus_l0.sampling.upsample import Sampler, transmittance, up_sample
 
 
 def coarse_z_vals(near: Tensor, far: Tensor, n_samples: int, perturb: bool,
@@ -139,12 +139,6 @@ def annealed_cos(true_cos: Tensor, cos_anneal_ratio: float | Tensor) -> Tensor:
     return torch.lerp(early, true_cos.clamp_max(0.0), cos_anneal_ratio)
 
 
-def as_sampler(sampler: Sampler | SamplerConfig | str) -> Sampler:
-    """A `Sampler` (built from a config or a name when not one already; build once per run
-    where it matters: a compiled draw compiles at its first use)."""
-    return sampler if hasattr(sampler, "draw") else build_sampler(sampler)
-
-
 def background_alpha_color(model: NeuSModel, origins: Tensor, dirs: Tensor, z: Tensor,
                            sample_dist: float) -> tuple[Tensor, Tensor]:
     """The background model's alpha and colour at the midpoints of sections of `z`.
@@ -225,17 +219,9 @@ class RenderOutput:
     active: Tensor
     inv_s: Tensor
 
-    def __getitem__(self, key: str) -> Tensor:
-        """``out["color"]``: a field by name."""
-        return getattr(self, key)
-
-    def items(self) -> list[tuple[str, Tensor]]:
-        """(name, tensor) pairs, as a dict's."""
-        return [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)]
-
 
 def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
-                cfg: RenderConfig, sampler: Sampler | SamplerConfig | str,
+                cfg: RenderConfig, sampler: Sampler,
                 cos_anneal_ratio: float | Tensor,
                 noise: RenderNoise | None, create_graph: bool,
                 in_sphere: bool = False, skipped: Tensor | None = None) -> dict[str, Tensor]:
@@ -258,7 +244,7 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, f
     t = _coarse(near, span, cfg.n_samples, noise is not None,
                 noise=None if noise is None else noise.coarse, step=step)
     t, t_fine = up_sample(lambda p: model.sdf.sdf(p).float(), origins, dirs, t,
-                          as_sampler(sampler), cfg.n_importance, cfg.up_sample_steps,
+                          sampler, cfg.n_importance, cfg.up_sample_steps,
                           in_sphere=in_sphere)
     N = t.shape[1]
     dists = torch.cat([t[:, 1:] - t[:, :-1], step], dim=-1)
@@ -301,7 +287,7 @@ def _with_background(model: NeuSModel, origins: Tensor, dirs: Tensor, fg: dict[s
 
 
 def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-                sampler: Sampler | SamplerConfig | str = "l0", *,
+                sampler: Sampler, *,
                 cos_anneal_ratio: float | Tensor = 1.0,
                 perturb: bool = False, generator: torch.Generator | None = None,
                 create_graph: bool = False,
@@ -323,8 +309,8 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         model: the networks; `model.background` is used when `cfg.n_outside > 0`.
         origins, dirs: (B, 3) in the normalised frame, unit `dirs`.
         cfg: sampling and compositing settings.
-        sampler: the up-sampling draw: a `neus_l0.sampling.upsample.Sampler`, or a `SamplerConfig`
-            or name to build one from (build it once and pass the object in loops).
+        sampler: the up-sampling draw (`neus_l0.sampling.upsample.build_sampler`; build it
+            once per run: a compiled draw compiles at its first use).
         cos_anneal_ratio: NeuS's cos annealing (1: unbiased).
         perturb: jitter the coarse (and background) samples, drawing from `generator`.
         generator: random source of the jitter.
@@ -383,7 +369,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
 
 
 def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
-                 sampler: Sampler | SamplerConfig | str = "l0",
+                 sampler: Sampler,
                  cos_anneal_ratio: float = 1.0,
                  chunk: int | None = None,
                  bounds: Sequence[RayBounds] = ()) -> dict[str, Tensor]:
@@ -417,14 +403,13 @@ def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderCon
         "weight_sum": torch.zeros(o.shape[0], 1, device=o.device),
     }
     chunk = chunk or cfg.chunk
-    sampler = as_sampler(sampler)
     for start in range(0, idx.shape[0], chunk):
         rows = idx[start:start + chunk]
         with torch.no_grad():
             out = render_rays(model, o[rows], d[rows], cfg, sampler,
                               cos_anneal_ratio=cos_anneal_ratio, perturb=False, bounds=bounds)
         for k in res:
-            res[k][rows] = out[k].detach().float()
+            res[k][rows] = getattr(out, k).detach().float()
     return {
         "color": res["color"].reshape(H, W, 3),
         "normal": res["normal"].reshape(H, W, 3),

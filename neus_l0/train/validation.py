@@ -16,6 +16,7 @@ from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene
 from neus_l0.fields.model import NeuSModel
 from neus_l0.render.volume import render_image
+from neus_l0.sampling.upsample import build_sampler
 from neus_l0.train.schedule import cos_anneal_ratio
 
 
@@ -44,7 +45,8 @@ def validation_image(model: NeuSModel, scene: Scene, cfg: Config, view: int, ite
         (h, 3w, 3) uint8 RGB.
     """
     o, d, rgb = validation_views(scene, view, max(1, cfg.train.val_downscale))
-    out = render_image(model, o, d, cfg.render, cfg.sampler if sampler is None else sampler,
+    out = render_image(model, o, d, cfg.render,
+                       build_sampler(cfg.sampler) if sampler is None else sampler,
                        cos_anneal_ratio(iteration, cfg.train.anneal_end), bounds=bounds)
     rot = scene.c2w[view, :3, :3]  # camera -> world
     normal_cam = out["normal"] @ rot  # (h, w, 3) world -> camera: n^T R = (R^T n)^T
