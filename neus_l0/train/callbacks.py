@@ -26,6 +26,7 @@ from pathlib import Path
 from neus_l0.run.checkpoints import checkpoint_path
 from neus_l0.run.metrics import append_line, snapshot_lines
 from neus_l0.train.state import RunState
+from neus_l0.train.step import METRIC_NAMES
 
 #: A training hook: ``hook(iteration, model, scene, cfg) -> {name: number}``.
 Hook = Callable[..., dict]
@@ -185,8 +186,9 @@ class TensorBoard(TrainingCallback):
     """TensorBoard events in the run folder (``tensorboard --logdir RUN``): the losses,
     s, PSNR, learning rate, samples per ray, iterations per second, validation images."""
 
-    SCALARS = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "inv_s", "lr",
-               "its_per_s")
+    #: The step's metrics (`neus_l0.train.step.METRIC_NAMES`, but the sample count, logged
+    #: per ray) and the loop's learning rate and speed.
+    SCALARS = (*(m for m in METRIC_NAMES if m != "samples"), "lr", "its_per_s")
 
     def __init__(self) -> None:
         self.logger = None

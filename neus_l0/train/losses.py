@@ -11,6 +11,9 @@ from torch import Tensor
 
 from neus_l0.config.schema import TrainConfig
 
+#: The names of what `neus_loss` returns, in the order the step reports them.
+LOSS_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr")
+
 if TYPE_CHECKING:
     from neus_l0.render.volume import RenderOutput
 
@@ -109,7 +112,7 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
     else:
         mloss = torch.zeros_like(color)
     loss = color + cfg.igr_weight * eik + cfg.mask_weight * mask_scale * mloss
-    return {
+    return {  # keys: LOSS_NAMES
         "loss": loss,
         "color_loss": color,
         "eikonal_loss": eik,

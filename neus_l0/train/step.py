@@ -17,18 +17,21 @@ from torch import Tensor
 
 from neus_l0.bounds.occupancy import OccupancyGrid
 from neus_l0.bounds.pixel_pool import PixelPool
-from neus_l0.bounds.spans import join_bounds
+from neus_l0.bounds.spans import RayBounds, join_bounds
 from neus_l0.config.schema import Config
 from neus_l0.data.rays import random_picks, random_rays, rays_at
 from neus_l0.data.scene import Scene
 from neus_l0.fields.linear import clear_weight_cache
 from neus_l0.fields.model import NeuSModel
 from neus_l0.render.volume import RenderNoise, draw_noise, render_rays
-from neus_l0.sampling.upsample import build_sampler
-from neus_l0.train.losses import eikonal_indices, neus_loss
+from neus_l0.sampling.upsample import Sampler, build_sampler
+from neus_l0.train.losses import LOSS_NAMES, eikonal_indices, neus_loss
 from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
-METRIC_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr", "inv_s", "samples")
+#: A step's metrics, in the order of `render_and_loss`'s metrics tensor: the losses, then
+#: NeuS's sharpness and the samples the step rendered. Every other list of metric names
+#: (the log line, TensorBoard) is built from this one.
+METRIC_NAMES = (*LOSS_NAMES, "inv_s", "samples")
 
 
 def make_optimizer(model: NeuSModel, cfg: Config) -> torch.optim.Adam:
@@ -162,8 +165,8 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
                       anneal, mask_scale, span)
 
 
-def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
-                    bounds: tuple) -> tuple[Tensor, Tensor]:
+def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: Sampler,
+                    bounds: tuple[RayBounds, ...]) -> tuple[Tensor, Tensor]:
     """Render a step's rays and compute its loss (what `train.compile` compiles).
 
     Returns:
@@ -176,7 +179,7 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler,
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
                        eikonal_idx=inputs.eikonal_idx)
     samples = out.active.sum() * out.t.shape[1]
-    values = [losses[k] for k in METRIC_NAMES[:5]] + [out.inv_s, samples]  # () each
+    values = [losses[k] for k in LOSS_NAMES] + [out.inv_s, samples]  # () each, METRIC_NAMES
     return losses["loss"], torch.stack(values).detach().float()  # stack promotes the count
 
 
@@ -191,10 +194,10 @@ class StepSetup:
         compiled: a compiled `render_and_loss` (`neus_l0.train.compile`; None: eager).
     """
 
-    bounds: tuple = ()
-    sampler: object = None
+    bounds: tuple[RayBounds, ...] = ()
+    sampler: Sampler | None = None
     pool: PixelPool | None = None
-    compiled: Callable | None = None
+    compiled: Callable[..., tuple[Tensor, Tensor]] | None = None
 
 
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
