@@ -11,7 +11,13 @@ from neus_l0.config.schema import SAMPLERS, ColorConfig, RenderConfig, VarianceC
 from neus_l0.fields.color import ColorNetwork
 from neus_l0.fields.model import NeuSModel, build_model
 from neus_l0.fields.variance import SingleVariance
-from neus_l0.render.volume import coarse_z_vals, outside_z_vals, render_image, render_rays
+from neus_l0.render.volume import (
+    coarse_z_vals,
+    draw_noise,
+    outside_z_vals,
+    render_image,
+    render_rays,
+)
 from neus_l0.sampling.upsample import (
     Sections,
     build_sampler,
@@ -167,8 +173,8 @@ def test_render_rays_gradients_and_background():
     cfg = RenderConfig(n_samples=16, n_importance=16, up_sample_steps=2, n_outside=8)
     o, d, _, _ = rays_at_sphere(32)
     g = torch.Generator().manual_seed(0)
-    out = render_rays(model, o, d, cfg, build_sampler("l0"), cos_anneal_ratio=0.5, perturb=True,
-                      generator=g, create_graph=True)
+    out = render_rays(model, o, d, cfg, build_sampler("l0"), cos_anneal_ratio=0.5,
+                      noise=draw_noise(cfg, 32, g, o.device), create_graph=True)
     assert out.weights.shape == (32, 32 + 8)
     assert out.gradients.shape == (32, 32, 3)
     for f in dataclasses.fields(out):
@@ -183,8 +189,9 @@ def test_render_rays_gradients_and_background():
 def test_render_is_deterministic_given_the_generator(sphere_model):
     model = sphere_model()
     o, d, _, _ = rays_at_sphere(16)
-    outs = [render_rays(model, o, d, RenderConfig(), build_sampler("l0"), perturb=True,
-                        generator=torch.Generator().manual_seed(3)).t for _ in range(2)]
+    outs = [render_rays(model, o, d, RenderConfig(), build_sampler("l0"),
+                        noise=draw_noise(RenderConfig(), 16, torch.Generator().manual_seed(3),
+                                         o.device)).t for _ in range(2)]
     assert torch.equal(outs[0], outs[1])
 
 

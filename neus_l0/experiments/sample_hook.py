@@ -69,8 +69,7 @@ class SampleDistanceHook:
         if len(o) == 0 or cfg.render.n_importance == 0:
             return {"sample_dist": None}
         out = render_rays(model, o, d, cfg.render, build_sampler(cfg.sampler),
-                          cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end),
-                          perturb=False)
+                          cos_anneal_ratio=cos_anneal_ratio(iteration, cfg.train.anneal_end))
         dist = self.surface(fine_points_world(o, d, out.t_fine, scene.scale_mat))
         value = float(np.mean(dist))
         return {"sample_dist": value if math.isfinite(value) else None}

@@ -220,17 +220,18 @@ class RenderOutput:
     inv_s: Tensor
 
 
-def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
-                cfg: RenderConfig, sampler: Sampler,
-                cos_anneal_ratio: float | Tensor,
+def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor,
+                interval: tuple[Tensor, Tensor, Tensor | None], cfg: RenderConfig,
+                sampler: Sampler, cos_anneal_ratio: float | Tensor,
                 noise: RenderNoise | None, create_graph: bool,
-                in_sphere: bool = False, skipped: Tensor | None = None) -> dict[str, Tensor]:
+                in_sphere: bool = False) -> dict[str, Tensor]:
     """Samples in [near, far], up-sampling, and the SDF / colour networks on them.
 
     Args:
-        origins, dirs: (B, 3); near, far: (B, 1).
+        origins, dirs: (B, 3).
+        interval: ``(near, far, skipped)``: (B, 1) each; ``skipped`` is the stretch of the
+            sphere's chord before `near` (`section_alpha`), or None.
         in_sphere: [near, far] lies on the unit sphere's chord (culled rays; `up_sample`).
-        skipped: (B, 1) the stretch of the sphere's chord before `near` (`section_alpha`).
 
     Returns:
         dict with ``t`` (B, N) sorted, ``t_fine`` (B, n_importance), ``t_mid`` and
@@ -239,6 +240,7 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor, near: Tensor, f
         from any autocast precision).
     """
     B = origins.shape[0]
+    near, far, skipped = interval
     span = far - near  # (B, 1)
     step = span / cfg.n_samples  # NeuS's 2 / n_samples on its own bounds
     t = _coarse(near, span, cfg.n_samples, noise is not None,
@@ -289,7 +291,6 @@ def _with_background(model: NeuSModel, origins: Tensor, dirs: Tensor, fg: dict[s
 def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConfig,
                 sampler: Sampler, *,
                 cos_anneal_ratio: float | Tensor = 1.0,
-                perturb: bool = False, generator: torch.Generator | None = None,
                 create_graph: bool = False,
                 bounds: Sequence[RayBounds] = (),
                 noise: RenderNoise | None = None,
@@ -312,10 +313,8 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         sampler: the up-sampling draw (`neus_l0.sampling.upsample.build_sampler`; build it
             once per run: a compiled draw compiles at its first use).
         cos_anneal_ratio: NeuS's cos annealing (1: unbiased).
-        perturb: jitter the coarse (and background) samples, drawing from `generator`.
-        generator: random source of the jitter.
-        noise: the jitter's uniforms drawn beforehand (`draw_noise`); given, it is used
-            whatever `perturb` says.
+        noise: the jitter of the coarse (and background) samples, its uniforms drawn
+            beforehand (`draw_noise`); None: no jitter.
         create_graph: keep the graph of the SDF gradients (training: Eikonal loss).
         bounds: objects that narrow the rays' bounds (see `ray_bounds`).
         span: (B, 4) the rays' bounds computed beforehand (`packed_spans`, e.g. kept by the
@@ -326,16 +325,14 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
         a `RenderOutput`.
     """
     bounds = tuple(bounds)
-    if noise is None and perturb:
-        noise = draw_noise(cfg, origins.shape[0], generator, origins.device)
     near, far, active, entry, exit_ = _ray_bounds(origins, dirs, cfg, bounds, span)
     # [near, far] on the sphere's chord; narrowed (by the hull or the grid)
     culled = cfg.cull_outside_sphere or bool(bounds) or span is not None
     narrowed = bool(bounds) or span is not None
     # the stretch skipped before the hull or grid joins the first section (`section_alpha`)
     skipped = (near - entry).clamp_min(0.0) if narrowed else None  # (B, 1)
-    fg = _foreground(model, origins, dirs, near, far, cfg, sampler, cos_anneal_ratio,
-                     noise, create_graph, in_sphere=culled, skipped=skipped)
+    fg = _foreground(model, origins, dirs, (near, far, skipped), cfg, sampler,
+                     cos_anneal_ratio, noise, create_graph, in_sphere=culled)
     keep = active[:, None].to(fg["alpha"].dtype)  # (B, 1)
     # the background starts where the sphere ends, never inside a narrowed interval
     bg_from = torch.maximum(far, exit_) if narrowed else far
@@ -407,7 +404,7 @@ def render_image(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderCon
         rows = idx[start:start + chunk]
         with torch.no_grad():
             out = render_rays(model, o[rows], d[rows], cfg, sampler,
-                              cos_anneal_ratio=cos_anneal_ratio, perturb=False, bounds=bounds)
+                              cos_anneal_ratio=cos_anneal_ratio, bounds=bounds)
         for k in res:
             res[k][rows] = getattr(out, k).detach().float()
     return {
