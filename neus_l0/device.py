@@ -43,9 +43,9 @@ def free_cpu_threads(requested: int | None = None) -> int:
     """Torch CPU threads for a command: `requested` when given (>= 1), else the cores this
     process may use less the machine's recent load (rounded), at least 1.
 
-    On a shared 2-core machine with another job running, torch's default two threads made
-    training 3.5x slower than one (the threads wait on each other while the other job holds
-    a core; docs/BENCHMARKS.md).
+    Torch's default of one thread per core is wrong on a shared machine: while another job
+    holds a core, the threads wait on each other and training slows down several-fold
+    (docs/BENCHMARKS.md, "How many CPU threads should training use?").
     """
     import os
 

@@ -19,13 +19,12 @@ from neus_l0.data.scene import Scene
 from neus_l0.errors import SceneError
 
 #: The share of the unit sphere's outer shell a visual hull may fill before the object counts
-#: as cut by the sphere. Measured with the default 128^3 hull. Objects that fit: the demo
-#: scene 1.8 %, DTU scan 65 3.3 %, pits-and-thin and the bunny (24 views at 200x150) 0.0 %.
-#: Objects cut (sphere radius x0.8): demo 34 %, pits-and-thin 17.4 %, bunny 13.7 %; x0.5:
-#: demo 55 %. The threshold was first set at 25 % on the demo alone; the two held-out scenes
-#: showed it would miss their cuts, hence 8 %. A cut of a few percent of the radius fills
-#: less and is not caught. A conservative hull reaches the shell even when the object fits,
-#: so one kept cell proves nothing.
+#: as cut by the sphere (at the default 128^3 hull). It sits between the few percent that
+#: objects which fit leave in the shell and the larger share a cut object fills, and was
+#: checked on scenes it was not tuned on (docs/benchmarks/bounds.md, "Numbers moved from
+#: code comments"). A cut of a few percent of the radius fills less and is not caught. A
+#: conservative hull reaches the shell even when the object fits, so one kept cell proves
+#: nothing.
 CUT_SHELL = 0.08
 #: Fewer carving views than this give hulls too loose to judge the fit by...
 CUT_MIN_VIEWS = 6

@@ -172,17 +172,18 @@ class OccupancyConfig:
 
     Off in `wmask` / `womask` (which reproduce NeuS). When on, rays that miss the unit
     sphere or cross no occupied cell get zero opacity, and the coarse samples of the others
-    lie in the span [first occupied, last occupied] along the ray. Measured on the CPU
-    without masks (docs/BENCHMARKS.md, "Without masks"): 32^3 updated every 128
-    steps costs under 1 % of a step, but batches keep their shape, so it saves no network
-    work, and it moved only 1.07x the coarse samples toward the surface; early in training
-    it left out a few % of the true surface (it follows the network's SDF)."""
+    lie in the span [first occupied, last occupied] along the ray. Off by default because
+    on the CPU path it cannot pay: batches keep their shape, so it saves no network work and
+    only moves where the coarse samples lie; and since it follows the network's SDF, early
+    in training it can leave out some of the true surface (docs/BENCHMARKS.md, "Without
+    masks")."""
 
     enabled: bool = False
     """Use the grid in training and rendering."""
     resolution: int = 32
-    """Cells per axis over [-1, 1]^3 (a multiple of `block`). 32 (was 64): an update costs
-    a tenth, and early in training it left out less of the true surface (BENCHMARKS.md)."""
+    """Cells per axis over [-1, 1]^3 (a multiple of `block`). 32 (was 64): fewer cells make
+    an update cheaper, and larger cells leave out less of the true surface early in training
+    (docs/benchmarks/bounds.md, "The occupancy grid on the CPU without masks")."""
     update_every: int = 128
     """Training iterations between grid updates (the first at iteration `start`)."""
     start: int = 0
@@ -214,7 +215,9 @@ class HullConfig:
     """Carve and use the hull when the scene has masks (saved as ``RUN/hull.pt``, so a
     resume and ``neus-l0 mesh`` use the same one)."""
     resolution: int = 128
-    """Cells per axis over the unit sphere's box (128: 7-8 s on 49 views of 1600x1200)."""
+    """Cells per axis over the unit sphere's box. At 128 the build takes seconds, and a finer
+    hull keeps little less of the sphere (docs/BENCHMARKS.md, "What does the visual hull
+    cost and buy?")."""
     margin_px: float = 2.0
     """Mask dilation in pixels for mask and calibration error (1 px is the least that kept
     every true surface point with masks eroded by 2 px; 2 leaves one to spare)."""
@@ -223,9 +226,9 @@ class HullConfig:
 @dataclass
 class PointBoundConfig:
     """The oriented box around a `neus-l0 colmap` scene's SfM points (`neus_l0.bounds.points`),
-    for scenes without a visual hull. Off by default: on the synthetic scenes exported
-    through pycolmap a margin below 0.2 cut thin parts the SfM points miss, and at 0.2 the
-    box keeps 70-94 % of the sphere (docs/BENCHMARKS.md, "Without masks")."""
+    for scenes without a visual hull. Off by default: the SfM points miss thin parts, so a
+    margin below 0.2 cuts them, and a box that wide keeps most of the sphere, which narrows
+    the rays little (docs/BENCHMARKS.md, "Without masks")."""
 
     enabled: bool = False
     """Narrow the rays to the box when the scene folder holds ``sparse_points.npz`` and the
@@ -283,8 +286,9 @@ class SamplerConfig:
     -> `linear`); only the L0 samplers have one."""
     pad: float = 0.0
     """Pad of the L0 samplers' point weights (maxblur's, or added directly without blur; see
-    `pad_mode`). The authors' code uses 0.001, the paper 0.01. Default 0: in the oracle study
-    (docs/BENCHMARKS.md) every pad only moved fine samples away from the surface."""
+    `pad_mode`). The authors' code uses 0.001, the paper 0.01. Default 0: a pad puts weight
+    where the section weights see no surface, so it can only draw fine samples away from it
+    (docs/BENCHMARKS.md, "Where do fine samples land on exact SDFs?")."""
     pad_mode: PadMode = "relative"
     """How `pad` scales: `absolute` (added to the point weights as they are: NeuS's section
     weights sum to at most 1, so its share of the draw grows as a ray's weight shrinks),
@@ -292,8 +296,10 @@ class SamplerConfig:
     whatever the weights) or `none` (no pad)."""
     blur: bool = False
     """Apply the L0-Sampler's maxblur (paper eq. 10) to the point weights. Off by default:
-    in the oracle study maxblur, not the pad, is what put fewer fine samples near the surface
-    than `hvs` (0.68x within 0.01 at 16+16; without it 1.12x); `render.l0_pad` in an old
+    maxblur widens a peak that NeuS's weights put in one section into a plateau over three,
+    which spreads the fine samples away from the surface; it, not the pad, is what put the
+    paper's draw behind `hvs` (docs/BENCHMARKS.md, "Where do fine samples land on exact
+    SDFs?"). `render.l0_pad` in an old
     config or checkpoint turns it back on (with an absolute pad), as the old code ran."""
     placement: Placement = "midpoint"
     """How NeuS's section weights become point weights for the L0 samplers: `midpoint`
@@ -309,8 +315,10 @@ class SamplerConfig:
     the section densities only places the samples inside it:
     `neus_l0.sampling.kernels.sample_l0_sections`; blur, pad, placement and as_density do not apply)
     or `interpolant` (the paper's draw: the interpolant's own mass over each stretch decides
-    its share, after maxblur and pad). In the oracle study (docs/BENCHMARKS.md) `sections`
-    put more fine samples near the surface than `hvs` and than `interpolant`."""
+    its share, after maxblur and pad). `sections` is the default because it keeps `hvs`'s
+    shares and only refines where the samples lie inside each section, so it lands fine
+    samples at least as near the surface as either (docs/BENCHMARKS.md, "Where do fine
+    samples land on exact SDFs?")."""
     base_inv_s: float = 64.0
     """NeuS's fixed sharpness of the first up-sampling round; round i uses base * 2^i."""
 

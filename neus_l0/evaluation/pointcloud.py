@@ -17,8 +17,9 @@ from scipy.spatial import cKDTree
 SAMPLE_CHUNK = 4_000_000
 #: Number of points (in x order) per slab when building the radius graph in `thin_points`.
 THIN_SLAB = 1_000_000
-#: Peak host memory of sampling, thinning and scoring, bytes per sampled point (measured on
-#: an icosphere: 217 at 0.9 M points, 128 at 3.8 M, 70 at 11.6 M, fixed costs included).
+#: Peak host memory of sampling, thinning and scoring, bytes per sampled point, besides
+#: `SAMPLE_FIXED_BYTES` (the measured per-point peak falls as the fixed part is spread over
+#: more points; docs/benchmarks/mesh.md, "Numbers moved from code comments").
 BYTES_PER_SAMPLE = 128
 #: Fixed part of that peak (one `SAMPLE_CHUNK` of candidates, the k-d trees' overheads).
 SAMPLE_FIXED_BYTES = 512 * 2**20
@@ -26,7 +27,8 @@ SAMPLE_FIXED_BYTES = 512 * 2**20
 
 def expected_samples(vertices: np.ndarray, faces: np.ndarray, density: float) -> float:
     """About how many points `sample_mesh` returns: V + area / density^2 (an upper bound
-    up to rounding; measured 0.87-0.94 of it on an icosphere)."""
+    up to rounding, so a memory check on it errs on the safe side; docs/benchmarks/mesh.md,
+    "Numbers moved from code comments")."""
     tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
     area = 0.5 * float(np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
                                       axis=-1).sum())

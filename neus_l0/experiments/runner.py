@@ -234,8 +234,8 @@ class TrainProgress:
 def warm_up_torch() -> None:
     """Pay torch's one-off lazy imports before the budget starts.
 
-    The first `torch.optim.Adam` imports `torch._dynamo` (about 3 s on the 2-core dev
-    machine), which `neus_l0.train.loop.train` would otherwise count against `train.max_seconds`.
+    The first `torch.optim.Adam` imports `torch._dynamo` (seconds on a small CPU), which
+    `neus_l0.train.loop.train` would otherwise count against `train.max_seconds`.
     """
     import torch
 

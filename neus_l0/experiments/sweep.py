@@ -149,13 +149,13 @@ def check_settings(out_dir: Path, settings: dict) -> None:
 
 #: What a sweep uses for the settings not given, by device. On a CPU: the `demo` config
 #: (NeuS's 8x256 `wmask` would spend a CPU's budget on a few hundred iterations), one torch
-#: thread per run (on a loaded machine torch's default of one thread per core made a run
-#: 25x slower), built-in scenes of 24 views at 200x150 (49 at 400x300 took a minute to
-#: synthesise), meshes at 128^3 and Chamfer sampled every 0.5 world units (the synthetic
-#: scenes' ground-truth point spacing): at 256^3 and the DTU protocol's 0.2, marching cubes
-#: and scoring took about 1 and 3 minutes per run on the 2-core dev machine
-#: (docs/BENCHMARKS.md). On CUDA: `fast`, torch's thread count, 49 views at 400x300, 256^3
-#: and 0.2.
+#: thread per run (runs share the cores, and torch's default of one thread per core makes
+#: the threads wait on each other), built-in scenes of 24 views at 200x150 (a larger scene
+#: takes long to synthesise on a CPU), meshes at 128^3 and Chamfer
+#: sampled every 0.5 world units (the synthetic scenes' ground-truth point spacing), so that
+#: meshing and scoring stay short next to the training budget (docs/BENCHMARKS.md, "How long
+#: do `neus-l0 bench` and `neus-l0 figures` take with the defaults?"). On CUDA: `fast`,
+#: torch's thread count, 49 views at 400x300, 256^3 and 0.2.
 DEVICE_DEFAULTS = {
     "cpu": {"conf": "demo", "threads": 1, "views": 24, "width": 200, "height": 150,
             "resolution": 128, "eval_density": 0.5},

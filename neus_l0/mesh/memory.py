@@ -10,14 +10,13 @@ The estimate (bytes) has two parts:
   cells, nb = ceil((R - 1) / block) per axis) holds the float32 coarse grid,
   4 (nb + 1)^3, and `keep_blocks`'s per-block temporaries (about 16 bytes a block);
 - one batch of `chunk` points through the SDF network: `EVAL_BYTES_PER_POINT` a point
-  (measured peak under `torch.no_grad` on the CPU, 2^18 points: 2.6 kB for ``demo``,
-  3.1 kB for ``wmask``, 6.8 kB for ``fast``);
+  (above the peak of the largest shipped network, so every config is covered);
 - the mesh, assumed: marching cubes gives about `FACES_PER_AREA` triangles per grid step
-  squared of surface (measured: 3.0 on spheres of radius 0.5 and 0.9 at 256^3 and
-  512^3), and extraction, clean-up and export peak at about `BYTES_PER_FACE` bytes a face
-  (measured 784-1033 bytes a face, see docs/BENCHMARKS.md). The surface area is not known
-  before the extraction; `TYPICAL_AREA` (a sphere of radius 1/sqrt(2) in the normalised
-  frame, where the object's bounding sphere is the unit sphere) stands in for it.
+  squared of surface, and extraction, clean-up and export peak at about `BYTES_PER_FACE`
+  bytes a face (both from measured extractions, the bytes above the largest peak; see
+  docs/BENCHMARKS.md, "Mesh clean-up, textures and the memory estimate"). The surface area
+  is not known before the extraction; `TYPICAL_AREA` (a sphere of radius 1/sqrt(2) in the
+  normalised frame, where the object's bounding sphere is the unit sphere) stands in for it.
 """
 
 from __future__ import annotations
@@ -29,10 +28,12 @@ from pathlib import Path
 from neus_l0.errors import NeusL0Error
 
 FACES_PER_AREA = 3.0
-"""Marching-cubes triangles per (grid step)^2 of surface area (measured on spheres)."""
+"""Marching-cubes triangles per (grid step)^2 of surface area (as marching cubes gives on
+spheres; docs/benchmarks/mesh.md)."""
 
 BYTES_PER_FACE = 1100
-"""Peak bytes per output face of extraction + clean-up + export (measured <= 1033)."""
+"""Peak bytes per output face of extraction + clean-up + export (above every measured
+peak, dense and sparse, so the estimate errs on the safe side)."""
 
 TYPICAL_AREA = 2.0 * math.pi
 """Assumed surface area in the normalised frame: a sphere of radius 1/sqrt(2)."""
@@ -41,7 +42,8 @@ KEEP_BLOCK_BYTES = 16
 """`keep_blocks` temporaries per block (absolute maximum, counts, masks, dilation)."""
 
 EVAL_BYTES_PER_POINT = 8192
-"""Bytes per point of one SDF evaluation batch (network activations; measured <= 6.8 kB)."""
+"""Bytes per point of one SDF evaluation batch (network activations; above the measured
+peak of every shipped config)."""
 
 
 def mesh_faces(resolution: int, bound: float = 1.0, area: float = TYPICAL_AREA) -> float:

@@ -102,8 +102,8 @@ def section_alpha(sdf: Tensor, slope: Tensor, half: Tensor, inv_s: Tensor,
     sphere (SDF ``start - slope * skipped``, slope <= 0). So a ray that enters the SDF's
     negative region head-on inside the skipped stretch is opaque at once (without this, it
     would see no zero crossing and stay transparent, and a network could fill the whole hull
-    at no cost: measured, the demo scored Chamfer 18.5 with the hull against 7.3 without
-    after 60 s), and one that enters outside the object is unchanged.
+    at no cost; docs/BENCHMARKS.md, "What does the visual hull cost and buy?"), and one that
+    enters outside the object is unchanged.
 
     Args:
         sdf: (B, N) SDF at the midpoints; slope: (B, N) the annealed slope (`annealed_cos`,

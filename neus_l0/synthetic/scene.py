@@ -66,7 +66,8 @@ DISTANCE_RANGE = (3.9, 4.4)
 GT_VOXEL = {"demo": 1.5, "pits-and-thin": 0.8}
 #: Rays per render batch (bounded memory; several views share one batch).
 RAYS_PER_BATCH = 2_500_000
-#: Peak bytes per ray of a render batch (measured 180-225 for `demo` at 400x300, spp 2-4).
+#: Peak bytes per ray of a render batch: the measured peak with a margin
+#: (docs/benchmarks/demo-and-configs.md, "Numbers moved from code comments").
 BYTES_PER_RAY = 256
 #: Memory of a scene besides the render batch and the depth maps (ground truth, torch).
 FIXED_BYTES = 256 * 2**20
@@ -255,8 +256,8 @@ def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
         progress: show a tqdm bar while rendering.
         threads: torch CPU threads while it runs (restored afterwards; None keeps the
             current setting). One is the default: the work is many small tensor ops, and
-            on a small shared CPU two threads competing with other processes were measured
-            up to 5x slower than one.
+            on a small shared CPU more threads wait on each other while other processes
+            hold the cores.
 
     Returns:
         The output folder.

@@ -1,8 +1,9 @@
 """`train.compile: auto`: compile the training step when the run is long enough to repay it.
 
-The compiled step (`neus_l0.train.compile`) is 2.3x faster than the eager one on the CPU
-(docs/BENCHMARKS.md), but compiling costs about 45 s on a 2-core CPU with an empty inductor
-cache and 5-10 s with a warm one. `auto` weighs the two:
+The compiled step (`neus_l0.train.compile`) is faster than the eager one, but compiling
+costs tens of seconds with an empty inductor cache and seconds with a warm one, which a short
+run does not win back (docs/BENCHMARKS.md, "When does the step compile, and what does a cold
+compile cost?"). `auto` weighs the two:
 
     saving  = min(iterations left x eager step, train.max_seconds) x (1 - compiled fraction)
     compile = the expected compile time (warm when this step was compiled here before)
@@ -37,17 +38,24 @@ from neus_l0.errors import NeusL0Error
 from neus_l0.run.resumes import recorded_overrides
 from neus_l0.train.cache_folder import compile_record_path
 
-#: Seconds per ray sample of an eager CPU step on one thread: `demo` (128 rays x 64 samples)
-#: took 74.8 ms (docs/BENCHMARKS.md, "How fast is a training step").
+#: Seconds per ray sample of an eager CPU step on one thread, from `demo`'s eager step
+#: (docs/BENCHMARKS.md, "How fast is a training step").
 EAGER_CPU_S_PER_SAMPLE = 9.1e-6
-#: An eager CUDA step is launch-bound: 41 ms on an H100 before the op work (1313 launches).
+#: An eager CUDA step is launch-bound (its kernel launches, not its arithmetic, set the
+#: time), so one constant stands for it (docs/benchmarks/training-step.md, "Numbers moved
+#: from code comments").
 EAGER_CUDA_STEP_S = 0.04
-#: Compiled step time / eager step time: 0.43 measured on the CPU; CUDA not measured yet.
+#: Compiled step time / eager step time: the CPU's measured ratio rounded up; CUDA's is a
+#: guess until a compiled CUDA step is measured (docs/BENCHMARKS.md, "How fast is a
+#: training step").
 COMPILED_FRACTION = {"cpu": 0.45, "cuda": 0.5}
-#: Expected compile seconds with an empty inductor cache (CPU: 26 s quiet with 2 threads, 45 s
-#: with 1 thread and another process running, on 2 cores).
+#: Expected compile seconds with an empty inductor cache: the CPU's is the slow case (one
+#: thread, another process running), so that `auto` does not compile on a hope
+#: (docs/BENCHMARKS.md, "When does the step compile, and what does a cold compile cost?").
 COLD_COMPILE_S = {"cpu": 45.0, "cuda": 90.0}
-#: Expected compile seconds when this step compiled here before (CPU: 7 s measured).
+#: Expected compile seconds when this step compiled here before, above the measured warm
+#: compile (docs/BENCHMARKS.md, "When does the step compile, and what does a cold compile
+#: cost?"); once the record holds a warm compile, its time replaces this.
 WARM_COMPILE_S = {"cpu": 12.0, "cuda": 20.0}
 #: Config sections that do not change the compiled graph (the optimiser and the schedule run
 #: outside it); everything else in the config is part of the record's key.
