@@ -24,12 +24,10 @@ def tiny_grid(**kw) -> HashGridEncoding:
     """3 levels (2, 4, 8 cells per axis) over a 64-entry table: level 0 (27 points) is
     indexed directly, levels 1 (125) and 2 (729) through the hash, with collisions."""
     args = dict(n_levels=3, n_features=2, log2_hashmap_size=6, base_resolution=2,
-                per_level_scale=2.0, init_scale=1.0)
+                per_level_scale=2.0, init_scale=1.0, n_freqs=0)
     args.update(kw)
-    if "start_level" in args or "update_steps" in args:
-        args["progressive"] = (args.pop("start_level", None), args.pop("update_steps", 1000))
     torch.manual_seed(0)
-    return HashGridEncoding(3, **args).double()
+    return HashGridEncoding(EncodingConfig(kind="hashgrid", **args)).double()
 
 
 def reference_features(enc: HashGridEncoding, x: torch.Tensor) -> torch.Tensor:

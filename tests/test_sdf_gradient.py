@@ -106,9 +106,9 @@ def test_analytic_parameter_gradients_equal_the_double_backward(name):
 def test_encoding_jacobians_match_autograd():
     x = _points(20)
     for enc in (FrequencyEncoding(3, 3), FrequencyEncoding(3, 2, include_input=False),
-                HashGridEncoding(3, n_levels=3, log2_hashmap_size=6, base_resolution=2,
-                                 per_level_scale=2.0, n_freqs=1, init_scale=1.0,
-                                 bound=1.3).double()):
+                HashGridEncoding(EncodingConfig(kind="hashgrid", n_levels=3, log2_hashmap_size=6,
+                                                base_resolution=2, per_level_scale=2.0,
+                                                n_freqs=1, init_scale=1.0, bound=1.3)).double()):
         out, jac = enc.forward_jacobian(x)
         assert torch.allclose(out, enc(x), atol=1e-12)
         ref = torch.autograd.functional.jacobian(lambda p, e=enc: e(p).sum(0), x)  # (D, N, 3)

@@ -143,8 +143,8 @@ class HashGridEncoding(Encoding):
     with ordinary tensor ops, so autograd differentiates them to any order (the SDF's
     gradient is piecewise polynomial in x, and the Eikonal loss backpropagates through it).
 
-    Progressive levels (instant-nsr-pl's ProgressiveBandHashGrid; `progressive` =
-    ``(start_level, update_steps)``): with `start_level` < L,
+    Progressive levels (instant-nsr-pl's ProgressiveBandHashGrid; ``cfg.start_level`` and
+    ``cfg.update_steps``): with `start_level` < L,
     only the first ``start_level + steps // update_steps`` levels are active (the others
     output 0), where ``steps`` is a persistent counter of forward passes made in training
     mode with gradients enabled (one per training iteration in `neus_l0.render.volume`; the
@@ -157,29 +157,29 @@ class HashGridEncoding(Encoding):
     instant-nsr-pl train the grid with a ~10x larger rate than NeuS's MLPs).
     """
 
-    def __init__(self, in_dim: int = 3, n_levels: int = 16, n_features: int = 2,
-                 log2_hashmap_size: int = 19, base_resolution: int = 16,
-                 per_level_scale: float = 1.3819, bound: float = 1.0, n_freqs: int = 0,
-                 include_input: bool = True, init_scale: float = 1e-4, lr_scale: float = 1.0,
-                 progressive: tuple[int | None, int] = (None, 1000)) -> None:
+    def __init__(self, cfg: EncodingConfig, in_dim: int = 3) -> None:
+        """The grid `cfg` describes (``kind: hashgrid``; `hashgrid_per_level_scale` when its
+        ``per_level_scale`` is 0), on inputs of `in_dim` = 3 channels."""
         super().__init__()
-        start_level, update_steps = progressive
+        n_levels, n_features, n_freqs = cfg.n_levels, cfg.n_features, cfg.n_freqs
+        start_level, update_steps = cfg.start_level, cfg.update_steps
         if in_dim != 3:
             raise ValueError("the hash grid encodes 3-D points")
         self.in_dim = in_dim
         self.n_levels = n_levels
         self.n_features = n_features
-        self.table_size = 2**log2_hashmap_size
-        self.bound = bound
-        self.lr_scale = lr_scale
+        self.table_size = 2**cfg.log2_hashmap_size
+        self.bound = cfg.bound
+        self.lr_scale = lr_scale = cfg.lr_scale
         self.start_level = n_levels if start_level is None else min(start_level, n_levels)
         self.update_steps = max(1, update_steps)
         self.bands = FrequencyEncoding(in_dim, n_freqs, include_input=False) if n_freqs else None
-        self.raw_dims = in_dim if include_input else 0
+        self.raw_dims = in_dim if cfg.include_input else 0
         self.out_dim = (self.raw_dims + (self.bands.out_dim if self.bands else 0)
                         + n_levels * n_features)
 
-        self.resolutions = level_resolutions(n_levels, base_resolution, per_level_scale)
+        self.resolutions = level_resolutions(n_levels, cfg.base_resolution,
+                                             hashgrid_per_level_scale(cfg))
         sizes = [min((n + 1) ** 3, self.table_size) for n in self.resolutions]
         #: levels [0, n_direct) are indexed directly, the rest through the hash
         self.n_direct = sum(1 for n in self.resolutions if (n + 1) ** 3 <= self.table_size)
@@ -213,7 +213,7 @@ class HashGridEncoding(Encoding):
         self.register_buffer("corner_mult", corners * self.level_mult, persistent=False)
         self.register_buffer("offset_col", self.offsets[:, None].clone(), persistent=False)
         self.register_buffer("steps", torch.zeros((), dtype=torch.int64))
-        table = torch.empty(offsets[-1], n_features).uniform_(-init_scale, init_scale)
+        table = torch.empty(offsets[-1], n_features).uniform_(-cfg.init_scale, cfg.init_scale)
         self.table = nn.Parameter(table / lr_scale)  # (sum of level sizes, F)
 
     def active_levels(self) -> Tensor:
@@ -419,12 +419,7 @@ def build_encoding(cfg: EncodingConfig, in_dim: int) -> Encoding:
     if cfg.kind == "frequency":
         return FrequencyEncoding(in_dim, cfg.n_freqs, cfg.include_input)
     if cfg.kind == "hashgrid":
-        return HashGridEncoding(
-            in_dim, n_levels=cfg.n_levels, n_features=cfg.n_features,
-            log2_hashmap_size=cfg.log2_hashmap_size, base_resolution=cfg.base_resolution,
-            per_level_scale=hashgrid_per_level_scale(cfg), bound=cfg.bound,
-            n_freqs=cfg.n_freqs, include_input=cfg.include_input, init_scale=cfg.init_scale,
-            lr_scale=cfg.lr_scale, progressive=(cfg.start_level, cfg.update_steps))
+        return HashGridEncoding(cfg, in_dim)
     raise ValueError(f"unknown encoding kind {cfg.kind!r}")
 
 
