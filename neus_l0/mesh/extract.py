@@ -358,12 +358,13 @@ def _block_values(sdf_fn: SdfFn, axis: Tensor, blocks: Tensor, B: int, chunk: in
 
 
 def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
-                          level: float = 0.0, device: str | torch.device = "cpu",
+                          device: str | torch.device = "cpu",
                           chunk: int = 2**18, block: int = 8, lipschitz: float = 1.5,
                           dilate: int = 1, hull: VisualHull | None = None,
                           progress: bool | None = None
                           ) -> tuple[np.ndarray, np.ndarray, ExtractionStats]:
-    """Marching cubes of an SDF on ``linspace(-bound, bound, R)^3``, evaluated near the surface.
+    """Marching cubes of an SDF's zero level set on ``linspace(-bound, bound, R)^3``, evaluated
+    near the surface.
 
     1. The SDF at every `block`-th grid sample per axis (the last sample always included):
        ((R - 1) / block + 1)^3 evaluations.
@@ -386,7 +387,6 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
         sdf_fn: the SDF, (P, 3) -> (P,) or (P, 1) (called under `torch.no_grad`).
         resolution: R, samples per axis.
         bound: half-size of the cube.
-        level: the iso-value.
         device: where points are evaluated.
         chunk: the most points per call of `sdf_fn`.
         block: cells per block edge.
@@ -399,8 +399,9 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
         vertices (V, 3) float64 (normalised frame), faces (F, 3) int64, `ExtractionStats`.
 
     Raises:
-        NeusL0Error: when no block crosses `level` (no surface inside the cube).
+        NeusL0Error: when no block crosses 0 (no surface inside the cube).
     """
+    level = 0.0
     t0 = time.perf_counter()
     R, B = int(resolution), int(block)
     if R < 2 or B < 1:
@@ -421,28 +422,10 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
                                             step, bound, level)
     kept = np.argwhere(keep)  # (K, 3)
     del coarse
-    extent = np.minimum(B, cells - kept * B) + 1  # (K, 3) samples per axis in each block
-
-    per_block = (B + 1) ** 3
-    m = max(1, chunk // per_block)  # blocks per batch
-    verts, faces, on_face = [], [], []
-    n_surface = 0
-    bar = _bar(progress, len(kept), f"marching cubes {R}^3", "block")
-    for s in range(0, len(kept), m):
-        bi = torch.as_tensor(kept[s:s + m], device=device)  # (m, 3)
-        vals = _block_values(sdf_fn, axis, bi, B, chunk, region)
-        evals += vals.size
-        # clamped samples repeat the last layer, so min/max over the padded block are exact
-        g = vals.reshape(len(bi), -1)
-        cross = (g.max(1) > level) & (g.min(1) <= level)  # (m,)
-        for j in np.flatnonzero(cross):
-            gv, f, face = _block_surface(vals[j], extent[s + j], kept[s + j] * B, level)
-            verts.append(gv)
-            faces.append(f)
-            on_face.append(face)
-        n_surface += int(cross.sum())
-        bar.update(len(bi))
-    bar.close()
+    verts, faces, on_face, evals_kept, n_surface = _march_blocks(
+        sdf_fn, axis, kept, (B, cells), chunk, region, _bar(progress, len(kept),
+                                                            f"marching cubes {R}^3", "block"))
+    evals += evals_kept
     if not verts:
         raise NeusL0Error(f"no surface: the SDF does not cross {level} inside the cube "
                           f"[-{bound}, {bound}]^3 (sparse extraction at {R}^3)")
@@ -450,6 +433,41 @@ def sparse_marching_cubes(sdf_fn: SdfFn, resolution: int, bound: float = 1.0,
     stats = ExtractionStats("sparse", R, evals, R**3, nb**3, len(kept), n_surface,
                             time.perf_counter() - t0, n_outside)
     return V * step - bound, F, stats
+
+
+def _march_blocks(sdf_fn: SdfFn, axis: Tensor, kept: np.ndarray, shape: tuple[int, int],
+                  chunk: int, region, bar) -> tuple[list, list, list, int, int]:
+    """The kept blocks' marching cubes, in batches of at most `chunk` points.
+
+    Args:
+        axis: (R,) the grid coordinates; kept: (K, 3) block indices; shape: (block, cells).
+        region: the hull's region for the grid, or None; bar: the progress bar.
+
+    Returns:
+        per crossing block its grid-unit vertices, faces and shared-face flags; the SDF
+        evaluations made; the number of blocks that cross 0.
+    """
+    B, cells = shape
+    extent = np.minimum(B, cells - kept * B) + 1  # (K, 3) samples per axis in each block
+    m = max(1, chunk // (B + 1) ** 3)  # blocks per batch
+    verts, faces, on_face = [], [], []
+    evals = n_surface = 0
+    for s in range(0, len(kept), m):
+        bi = torch.as_tensor(kept[s:s + m], device=axis.device)  # (m, 3)
+        vals = _block_values(sdf_fn, axis, bi, B, chunk, region)
+        evals += vals.size
+        # clamped samples repeat the last layer, so min/max over the padded block are exact
+        g = vals.reshape(len(bi), -1)
+        cross = (g.max(1) > 0.0) & (g.min(1) <= 0.0)  # (m,)
+        for j in np.flatnonzero(cross):
+            gv, f, face = _block_surface(vals[j], extent[s + j], kept[s + j] * B, 0.0)
+            verts.append(gv)
+            faces.append(f)
+            on_face.append(face)
+        n_surface += int(cross.sum())
+        bar.update(len(bi))
+    bar.close()
+    return verts, faces, on_face, evals, n_surface
 
 
 def clean_mesh(mesh: trimesh.Trimesh, keep_largest: bool = True,
@@ -503,8 +521,8 @@ def vertex_colors(model, vertices: np.ndarray, device: str | torch.device = "cpu
 
 def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: float = 1.0,
                  clean: bool = True, colors: bool = False, device: str | torch.device = "cpu",
-                 chunk: int = 2**18, method: str = "auto", block: int = 8,
-                 lipschitz: float = 1.5, hull: VisualHull | None = None) -> trimesh.Trimesh:
+                 chunk: int = 2**18, method: str = "auto",
+                 hull: VisualHull | None = None) -> trimesh.Trimesh:
     """The trained SDF's zero level set in world units.
 
     Args:
@@ -516,7 +534,6 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
         device, chunk: where and how many points at a time the SDF is evaluated.
         method: "dense" (the whole grid), "sparse" (`sparse_marching_cubes`) or "auto"
             (sparse above `SPARSE_ABOVE` samples per axis).
-        block, lipschitz: the sparse path's block size and block rule.
         hull: optional `neus_l0.bounds.hull.VisualHull` (normalised frame): nothing is exported
             outside ``hull.for_grid(step)`` (see `sparse_marching_cubes`; the dense path
             reads samples outside it as far outside too).
@@ -538,8 +555,7 @@ def extract_mesh(model, scale_mat: np.ndarray, resolution: int = 512, bound: flo
 
     if method == "sparse":
         verts, faces, stats = sparse_marching_cubes(f, resolution, bound, device=device,
-                                                    chunk=chunk, block=block,
-                                                    lipschitz=lipschitz, hull=hull)
+                                                    chunk=chunk, hull=hull)
     else:
         t0 = time.perf_counter()
         g = f
