@@ -348,9 +348,8 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     completeness, overall, mesh_s}`` per snapshot (seconds: the loop time when it was taken;
     mesh_s: its marching cubes) and ends with the final model (seconds: ``train_seconds``).
 
-    Args:
-        progress: the training loop's own tqdm bar.
-        report: a `neus_l0.experiments.progress.StepReporter` told each step (None: a silent one).
+    Args: progress: the training loop's own tqdm bar; report: a `StepReporter` told each
+    step (`neus_l0.experiments.progress`; None: a silent one).
     """
     from neus_l0.experiments.progress import StepReporter
 
@@ -365,8 +364,6 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     from neus_l0.evaluation.sample_distance import SurfaceDistance
     from neus_l0.experiments.sample_hook import SampleDistanceHook
     from neus_l0.formats.open import open_scene
-    from neus_l0.mesh.extract import export_mesh
-    from neus_l0.mesh.from_run import mesh_from_run
     from neus_l0.train.loop import train
 
     if spec.threads:
@@ -395,31 +392,14 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     peak_rss = _peak_rss_mb()
     peak_gpu = (torch.cuda.max_memory_allocated() / 2**20 if spec.device == "cuda" else None)
 
-    t0 = time.monotonic()
-    report(f"mesh: marching cubes {spec.resolution}^3")
-    made = mesh_from_run(run_dir, spec.resolution, spec.device)
-    timings["extract_s"] = time.monotonic() - t0
-    mesh_path = export_mesh(made.mesh, run_dir / "mesh.ply")
-    timings["mesh_s"] = time.monotonic() - t0
+    made, mesh_path = _mesh_stage(spec, timings, report)
     sample_dist = None
     if hook is not None:
         report("final sample distance")
         with torch.no_grad():
             sample_dist = hook(result.iteration, made.model, train_scene.to(spec.device),
                                cfg, force=True)["sample_dist"]
-
-    score_fn = functools.partial(_score, spec)
-    t0 = time.monotonic()
-    report("score: Chamfer")
-    score = score_fn(mesh_path)
-    timings["score_s"] = time.monotonic() - t0
-
-    t0 = time.monotonic()
-    curve = score_snapshots(spec, result.snapshots, result.iteration,
-                            _snapshot_elapsed(run_dir) if result.snapshots else {}, score_fn,
-                            report)
-    curve.append(curve_point(result.seconds, result.iteration, score, timings["extract_s"]))
-    timings["snapshots_s"] = time.monotonic() - t0
+    score, curve = _score_stage(spec, result, mesh_path, timings, report)
 
     t0 = time.monotonic()
     psnrs = heldout_psnr(made.model, full.to(spec.device), test_views, cfg, result.iteration,
@@ -441,6 +421,39 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
         {"peak_rss": peak_rss, "peak_gpu": peak_gpu, "timings": timings, "curve": curve,
          "surface": surface.kind if surface is not None else None}))
     return row
+
+
+def _mesh_stage(spec: RunSpec, timings: dict, report):
+    """The run's final mesh (`mesh_from_run`, exported as ``mesh.ply``), timed into
+    `timings`. Returns the `mesh_from_run` result and the mesh's path."""
+    from neus_l0.mesh.extract import export_mesh
+    from neus_l0.mesh.from_run import mesh_from_run
+
+    t0 = time.monotonic()
+    report(f"mesh: marching cubes {spec.resolution}^3")
+    made = mesh_from_run(spec.run_dir, spec.resolution, spec.device)
+    timings["extract_s"] = time.monotonic() - t0
+    mesh_path = export_mesh(made.mesh, spec.run_dir / "mesh.ply")
+    timings["mesh_s"] = time.monotonic() - t0
+    return made, mesh_path
+
+
+def _score_stage(spec: RunSpec, result, mesh_path: Path, timings: dict,
+                 report) -> tuple[dict | None, list[dict]]:
+    """The final mesh's Chamfer report and the curve over the snapshots (ending with the
+    final model), timed into `timings`."""
+    score_fn = functools.partial(_score, spec)
+    t0 = time.monotonic()
+    report("score: Chamfer")
+    score = score_fn(mesh_path)
+    timings["score_s"] = time.monotonic() - t0
+    t0 = time.monotonic()
+    curve = score_snapshots(spec, result.snapshots, result.iteration,
+                            _snapshot_elapsed(spec.run_dir) if result.snapshots else {},
+                            score_fn, report)
+    curve.append(curve_point(result.seconds, result.iteration, score, timings["extract_s"]))
+    timings["snapshots_s"] = time.monotonic() - t0
+    return score, curve
 
 
 def failed_row(spec: RunSpec, error: str) -> dict:

@@ -98,7 +98,7 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     paths = result.paths
 
     t0 = time.monotonic()
-    _make_demo_scene(paths["scene"], threads, opts.quiet)
+    _make_demo_scene(paths["scene"], opts.quiet)
     timings["scene_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
@@ -129,7 +129,7 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     return dataclasses.replace(result, metrics=metrics, iteration=trained.iteration)
 
 
-def _make_demo_scene(scene_dir: Path, threads: int, quiet: bool) -> None:
+def _make_demo_scene(scene_dir: Path, quiet: bool) -> None:
     """Render the built-in scene into `scene_dir` unless it is there already."""
     from neus_l0.synthetic.scene import make_scene
 
@@ -137,7 +137,7 @@ def _make_demo_scene(scene_dir: Path, threads: int, quiet: bool) -> None:
         print(f"[1/4] reusing the scene in {scene_dir}", flush=True)
         return
     print(f"[1/4] rendering the demo scene into {scene_dir} ...", flush=True)
-    make_scene("demo", scene_dir, seed=0, progress=not quiet, threads=threads, **DEMO_SCENE)
+    make_scene("demo", scene_dir, seed=0, progress=not quiet, **DEMO_SCENE)
 
 
 def _mesh_score_draw(opts: DemoOptions, paths: dict[str, Path], device: str,

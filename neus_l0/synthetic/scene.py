@@ -62,6 +62,8 @@ WORLD_OFFSET = (12.0, -8.0, 30.0)
 SPHERE_MARGIN = 1.1
 #: Camera distance range in sphere radii (DTU: about 4.1).
 DISTANCE_RANGE = (3.9, 4.4)
+#: Azimuth range of the camera cap, degrees (360: all around the object).
+AZIMUTH_SPAN = 360.0
 #: Default marching-cubes voxel (world units) of the ground-truth mesh, per built-in.
 GT_VOXEL = {"demo": 1.5, "pits-and-thin": 0.8}
 #: Rays per render batch (bounded memory; several views share one batch).
@@ -238,8 +240,7 @@ def _save_npz(path: Path, arrays: dict, compressed: bool) -> None:
 def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
                height: int = 300, seed: int = 0, *, spp: int = 2,
                gt_voxel: float | None = None, point_spacing: float = 0.5,
-               azimuth_span: float = 360.0, progress: bool = True,
-               threads: int | None = 1) -> Path:
+               progress: bool = True) -> Path:
     """Render a synthetic NeuS-format scene with exact ground truth into `out`.
 
     Args:
@@ -252,13 +253,7 @@ def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
         gt_voxel: marching-cubes voxel of the ground-truth mesh (world units; default per
             built-in). Ignored for mesh input.
         point_spacing: about how far apart the ground-truth points are (world units).
-        azimuth_span: azimuth range of the camera cap in degrees (360: all around).
         progress: show a tqdm bar while rendering.
-        threads: torch CPU threads while it runs (restored afterwards; None keeps the
-            current setting). One is the default: the work is many small tensor ops, and
-            on a small shared CPU more threads wait on each other while other processes
-            hold the cores.
-
     Returns:
         The output folder.
 
@@ -266,9 +261,9 @@ def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
         NeusL0Error: out-of-range numbers (`check_scene_args`), an unknown scene, a mesh
             file no scene can be made of, or an `out` that must not be replaced.
     """
-    with _torch_threads(threads):
+    with _torch_threads(1):  # many small tensor ops: more threads wait on each other
         return _make_scene(scene, out, views, width, height, seed, spp, gt_voxel,
-                           point_spacing, azimuth_span, progress)
+                           point_spacing, progress)
 
 
 @dataclasses.dataclass
@@ -503,13 +498,13 @@ def _gt_points(truth: _TrueSurface, rig: _Rig, depth: np.ndarray, spacing: float
 
 
 def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spacing,
-                azimuth_span, progress) -> Path:
+                progress) -> Path:
     check_scene_args(views, width, height, spp, seed)
     t_start = time.time()
     target = _replaceable(Path(out))
     truth = _true_surface(scene, gt_voxel)
     gt_mesh = truth.mesh
-    rig = _camera_rig(np.asarray(gt_mesh.vertices), views, width, height, seed, azimuth_span)
+    rig = _camera_rig(np.asarray(gt_mesh.vertices), views, width, height, seed, AZIMUTH_SPAN)
     with _staged_folder(target) as tmp:
         depth = _render_into(tmp, truth, rig, (width, height), spp, seed, progress)
         pts = _gt_points(truth, rig, depth, point_spacing, seed)
@@ -531,7 +526,7 @@ def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spa
             "world_units": "millimetres (DTU-like)",
             "sphere": {"center": rig.centre.tolist(), "radius": rig.radius,
                        "margin": SPHERE_MARGIN},
-            "cameras": {"elevation_deg": [20.0, 70.0], "azimuth_span_deg": azimuth_span,
+            "cameras": {"elevation_deg": [20.0, 70.0], "azimuth_span_deg": AZIMUTH_SPAN,
                         "distance": list(rig.dist), "focal": float(rig.K[0, 0]),
                         "intrinsics": rig.K.tolist(), "c2w_world": rig.c2w.tolist()},
             "gt_points": {"count": int(len(pts)), "spacing": point_spacing},
