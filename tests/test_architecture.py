@@ -119,21 +119,135 @@ def test_sampling_kernels_import_nothing_of_the_package():
     assert GRAPH["neus_l0.sampling.kernels"] == set()
 
 
+#: The floors of the house, lowest first: a room imports only rooms on its own floor or below
+#: (docs/ARCHITECTURE.md draws them). "" is the package root (``__version__``).
+FLOORS: tuple[tuple[str, ...], ...] = (
+    ("", "errors", "atomic", "device"),
+    ("config",),
+    ("data", "sampling", "fields", "synthetic"),
+    ("bounds",),
+    ("render", "run", "formats", "evaluation"),
+    ("train", "mesh", "photos"),
+    ("figures", "experiments"),
+    ("pipelines",),
+    ("commands", "cli", "__main__"),
+)
+FLOOR = {room: i for i, rooms in enumerate(FLOORS) for room in rooms}
+
+
+def _room_graph() -> dict[str, set[str]]:
+    """Room -> the other rooms its modules import (root modules are rooms of their own)."""
+    rooms: dict[str, set[str]] = {}
+    for m, targets in GRAPH.items():
+        for t in targets:
+            a, b = _room(m), _room(t)
+            if a != b:
+                rooms.setdefault(a, set()).add(b)
+    return rooms
+
+
+def test_every_room_has_a_floor():
+    rooms = {_room(m) for m in MODULES}
+    assert rooms <= set(FLOOR), sorted(rooms - set(FLOOR))
+
+
+def test_no_arrow_runs_back_up():
+    """Data flows one way: no module imports a room on a higher floor."""
+    up = [f"{m} -> {t}" for m, targets in GRAPH.items() for t in targets
+          if FLOOR[_room(t)] > FLOOR[_room(m)]]
+    assert not up, up
+
+
 def test_mesh_never_imports_train():
     for m, targets in GRAPH.items():
         if _room(m) == "mesh":
             assert not any(_room(t) == "train" for t in targets), m
 
 
-def test_lower_rooms_never_import_the_rooms_above_them():
-    """Data flows one way: nothing below training imports training, the bench, figures or
-    the commands."""
-    above = {"train", "bench", "figures", "study", "commands", "cli"}
-    below = {"config", "data", "fields", "sampling", "bounds", "render", "run", "mesh",
-             "evaluation", "photos", "formats"}
-    for m, targets in GRAPH.items():
-        if _room(m) in below:
-            assert not {_room(t) for t in targets} & above, m
+def test_nothing_below_training_reads_the_run_folder():
+    """The rooms training stands on (everything `train/` imports, but `run/` itself) never
+    import `run/`: geometry, rendering and scenes do not depend on the run folder."""
+    rooms = _room_graph()
+    below, todo = set(), ["train"]
+    while todo:
+        for r in rooms.get(todo.pop(), ()):
+            if r not in below:
+                below.add(r)
+                todo.append(r)
+    below -= {"run"}
+    bad = sorted(r for r in below if "run" in rooms.get(r, ()))
+    assert not bad, bad
+
+
+def test_render_is_volume_rendering_only():
+    """`render/` imports neither the run folder nor the scene formats."""
+    bad = [m for m, targets in GRAPH.items() if _room(m) == "render"
+           and {_room(t) for t in targets} & {"run", "formats"}]
+    assert not bad, bad
+
+
+def test_commands_are_thin():
+    long = [f"{p.name} ({n} lines)" for p in (PACKAGE / "commands").glob("*.py")
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > 150]
+    assert not long, long
+
+
+def _defs(pattern: str) -> list[str]:
+    """Modules defining a top-level function or class whose name matches `pattern`."""
+    import re
+
+    rx = re.compile(pattern)
+    return sorted(f"{m}.{n.name}" for m, p in MODULES.items()
+                  for n in ast.parse(p.read_text(encoding="utf-8")).body
+                  if isinstance(n, (ast.FunctionDef, ast.ClassDef)) and rx.fullmatch(n.name))
+
+
+def test_each_concept_lives_in_one_place():
+    """The view split, the sphere fit, the mesh rasteriser and the metric names: one module
+    each."""
+    assert _defs(r".*split_views|subset_scene") == ["neus_l0.data.split.split_views",
+                                                    "neus_l0.data.split.subset_scene"]
+    holdout_rule = [m for m, p in MODULES.items() if m != "neus_l0.data.split"
+                    for n in ast.walk(ast.parse(p.read_text(encoding="utf-8")))
+                    if isinstance(n, ast.BinOp) and isinstance(n.op, ast.Mod)
+                    and "holdout" in ast.unparse(n.right)]
+    assert not holdout_rule, holdout_rule
+    fits = {d.rsplit(".", 1)[0] for d in _defs(r"\w*(choose|find|fit|hull|camera|given|user)"
+                                                r"_sphere|Sphere(Fit|Choice)")}
+    assert fits == {"neus_l0.formats.sphere"}, fits
+    assert _defs(r"\w*(raster|splat)_render\w*") == ["neus_l0.figures.raster.raster_render"]
+    lists = sorted({m for m, p in MODULES.items()
+                    for n in ast.walk(ast.parse(p.read_text(encoding="utf-8")))
+                    if isinstance(n, (ast.Tuple, ast.List))
+                    and any(isinstance(e, ast.Constant) and e.value == "color_loss"
+                            for e in n.elts)})
+    assert lists == ["neus_l0.train.losses"], lists
+
+
+def import_table() -> str:
+    """The Markdown table of which room imports which, generated from the code (what
+    docs/ARCHITECTURE.md shows between its ``imports`` markers)."""
+    rooms = _room_graph()
+    lines = ["| floor | room | imports |", "|---|---|---|"]
+    for i, floor in enumerate(FLOORS):
+        for room in floor:
+            if room == "" or room not in {_room(m) for m in MODULES}:
+                continue
+            deps = sorted(r for r in rooms.get(room, ()) if r)
+            lines.append(f"| {i} | `{room}` | {', '.join(f'`{d}`' for d in deps) or '-'} |")
+    return "\n".join(lines)
+
+
+BEGIN, END = "<!-- imports: generated by tests/test_architecture.py -->", "<!-- imports: end -->"
+
+
+def test_the_architecture_page_shows_the_imports_as_they_are():
+    """docs/ARCHITECTURE.md's import table is the code's (`import_table`); to refresh it,
+    run ``python tests/test_architecture.py``."""
+    doc = (ROOT / "docs" / "ARCHITECTURE.md").read_text(encoding="utf-8")
+    assert BEGIN in doc and END in doc
+    shown = doc.split(BEGIN, 1)[1].split(END, 1)[0].strip()
+    assert shown == import_table(), "run: python tests/test_architecture.py"
 
 
 def test_no_test_module_imports_another():
@@ -190,3 +304,11 @@ def test_the_current_benchmarks_page_stays_a_page():
     lines = (ROOT / "docs" / "BENCHMARKS.md").read_text(encoding="utf-8").splitlines()
     assert len(lines) <= 500, len(lines)
     assert (ROOT / "docs" / "benchmarks" / "README.md").is_file()
+
+
+if __name__ == "__main__":  # refresh docs/ARCHITECTURE.md's import table
+    page = ROOT / "docs" / "ARCHITECTURE.md"
+    doc = page.read_text(encoding="utf-8")
+    head, rest = doc.split(BEGIN, 1)
+    page.write_text(f"{head}{BEGIN}\n{import_table()}\n{END}{rest.split(END, 1)[1]}",
+                    encoding="utf-8")
