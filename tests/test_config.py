@@ -13,7 +13,7 @@ from neus_l0.config.load import (
     resolve_conf_path,
     to_dict,
 )
-from neus_l0.config.schema import SAMPLERS, Config, SamplerConfig
+from neus_l0.config.schema import SAMPLERS, Config, L0Config, SamplerConfig
 from neus_l0.errors import ConfigError
 
 
@@ -172,28 +172,28 @@ def test_sampler_block_and_its_shorthand(tmp_path):
     cfg = load_config("wmask", ["sampler=l0-linear"])
     assert isinstance(cfg.sampler, SamplerConfig) and cfg.sampler.name == "l0-linear"
     assert cfg.sampler.name == "l0-linear"
-    assert cfg.sampler.l0_kind() == "linear" and cfg.sampler.pad == SamplerConfig().pad
+    assert cfg.sampler.l0_kind() == "linear" and cfg.sampler.l0.pad == SamplerConfig().l0.pad
     cfg = load_config("demo", ["sampler.pad=0.05", "sampler.pad_mode=relative",
                                "sampler.masses=interpolant"])
-    assert cfg.sampler.name == "l0" and (cfg.sampler.pad, cfg.sampler.pad_mode) == (0.05,
+    assert cfg.sampler.name == "l0" and (cfg.sampler.l0.pad, cfg.sampler.l0.pad_mode) == (0.05,
                                                                                     "relative")
     cfg = load_config("wmask", ["sampler.pad_mode=none"])  # the file's name is kept
-    assert (cfg.sampler.name, cfg.sampler.pad_mode) == ("hvs", "none")
+    assert (cfg.sampler.name, cfg.sampler.l0.pad_mode) == ("hvs", "none")
     # a bare name over a block changes the name only, in either order
     for items in (["sampler.pad=0.2", "sampler=l0-linear"], ["sampler=l0-linear",
                                                              "sampler.pad=0.2"]):
         s = load_config("wmask", [*items, "sampler.masses=interpolant"]).sampler
-        assert (s.name, s.pad) == ("l0-linear", 0.2), items
+        assert (s.name, s.l0.pad) == ("l0-linear", 0.2), items
     p = tmp_path / "block.yaml"
     p.write_text("sampler: {name: l0, pad_mode: relative, pad: 0.05, masses: interpolant}\n")
     s = load_config(str(p), ["sampler=hvs"]).sampler
-    assert (s.name, s.pad_mode, s.pad) == ("hvs", "relative", 0.05)
+    assert (s.name, s.l0.pad_mode, s.l0.pad) == ("hvs", "relative", 0.05)
     assert Config(sampler="hvs").sampler == SamplerConfig(name="hvs")
-    assert SamplerConfig(name="l0") != SamplerConfig(name="l0", pad=0.5)
+    assert SamplerConfig(name="l0") != SamplerConfig(name="l0", l0=L0Config(pad=0.5))
     p = tmp_path / "s.yaml"
     p.write_text("sampler: {name: l0, kind: inverse, blur: false}\n")
     s = load_config(str(p)).sampler
-    assert (s.l0_kind(), s.blur) == ("inverse", False)
+    assert (s.l0_kind(), s.l0.blur) == ("inverse", False)
 
 
 def test_old_render_keys_map_to_the_sampler_block(tmp_path):
@@ -203,40 +203,42 @@ def test_old_render_keys_map_to_the_sampler_block(tmp_path):
     with pytest.warns(FutureWarning, match="render.compile_sampler"):
         cfg = load_config(str(p))
     s = cfg.sampler
-    assert (s.name, s.placement, s.as_density, s.pad) == ("l0", "endpoint", False, 0.01)
-    assert (s.blur, s.pad_mode) == (True, "absolute")  # what the old code ran
-    assert (SamplerConfig().blur, SamplerConfig().pad) == (False, 0.0)  # the new default
+    assert (s.name, s.l0.placement, s.l0.as_density, s.l0.pad) == ("l0", "endpoint", False, 0.01)
+    assert (s.l0.blur, s.l0.pad_mode) == (True, "absolute")  # what the old code ran
+    assert (SamplerConfig().l0.blur, SamplerConfig().l0.pad) == (False, 0.0)  # the new default
     assert cfg.render.n_samples == 16
     # the new key wins where both are given; old command-line keys still work
     with pytest.warns(FutureWarning):
         cfg = load_config(str(p), ["sampler.pad=0.02", "render.weights_as_density=true"])
-    assert cfg.sampler.pad == 0.02 and cfg.sampler.as_density is True
-    assert cfg.sampler.placement == "endpoint"
+    assert cfg.sampler.l0.pad == 0.02 and cfg.sampler.l0.as_density is True
+    assert cfg.sampler.l0.placement == "endpoint"
     assert config_from_dict(to_dict(cfg)) == cfg
-    assert s.masses == "interpolant"  # what the old code drew from
+    assert s.l0.masses == "interpolant"  # what the old code drew from
 
 
 def test_a_block_dumped_before_masses_keeps_the_interpolant():
     """Runs saved before `sampler.masses` existed resume with the draw they were trained with."""
     old = to_dict(load_config("demo"))
-    del old["sampler"]["masses"]
-    assert config_from_dict(old).sampler.masses == "interpolant"
-    assert load_config("demo").sampler.masses == "sections"
+    flat = {**{k: v for k, v in old["sampler"].items() if k != "l0"}, **old["sampler"]["l0"]}
+    del flat["masses"]  # the flat block of the time, before `masses` and the `l0` block
+    old["sampler"] = flat
+    assert config_from_dict(old).sampler.l0.masses == "interpolant"
+    assert load_config("demo").sampler.l0.masses == "sections"
     # a hand-written block that sets base_inv_s is not a dump: the default draw
     hand = {**old, "sampler": {"name": "l0", "base_inv_s": 128.0}}
-    assert config_from_dict(hand).sampler.masses == "sections"
-    assert load_config("fast", ["sampler=l0"]).sampler.masses == "sections"
+    assert config_from_dict(hand).sampler.l0.masses == "sections"
+    assert load_config("fast", ["sampler=l0"]).sampler.l0.masses == "sections"
 
 
 @pytest.mark.parametrize("override, words", [
-    (["sampler.kind=cubic"], ["sampler.kind", "cubic"]),
-    (["sampler=hvs", "sampler.kind=exp"], ["sampler.kind", "hvs"]),
+    (["sampler.kind=cubic"], ["sampler.l0.kind", "cubic"]),
+    (["sampler=hvs", "sampler.kind=exp"], ["sampler.l0.kind", "hvs"]),
     (["sampler=l0-inverse", "sampler.kind=linear"], ["contradicts"]),
-    (["sampler.pad_mode=fraction"], ["sampler.pad_mode", "relative"]),
-    (["sampler.pad=-1"], ["sampler.pad"]),
-    (["sampler.pad=0.05"], ["sampler.pad", "sampler.masses=interpolant"]),
-    (["sampler.blur=true"], ["sampler.blur", "sampler.masses=interpolant"]),
-    (["sampler.masses=pdf"], ["sampler.masses", "sections"]),
+    (["sampler.pad_mode=fraction"], ["sampler.l0.pad_mode", "relative"]),
+    (["sampler.pad=-1"], ["sampler.l0.pad"]),
+    (["sampler.pad=0.05"], ["sampler.l0.pad", "sampler.l0.masses=interpolant"]),
+    (["sampler.blur=true"], ["sampler.l0.blur", "sampler.l0.masses=interpolant"]),
+    (["sampler.masses=pdf"], ["sampler.l0.masses", "sections"]),
     (["sampler.base_inv_s=0"], ["base_inv_s"]),
     (["sampler.name=nope"], ["sampler.name", "nope", "neus-exact"]),
 ])

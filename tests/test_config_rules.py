@@ -15,7 +15,7 @@ from neus_l0.errors import ConfigError
 @pytest.mark.parametrize("override", [
     "render.chunk=0", "render.chunk=-4", "train.save_every=-7", "train.max_seconds=-1",
     "train.lr=.nan", "train.lr=0", "train.lr=-1e-3", "train.lr=.inf", "train.igr_weight=-1",
-    "train.lr_alpha=-1", "train.lr_alpha=2", "sampler.pad=.inf", "train.warm_up=-1",
+    "train.lr_alpha=-1", "train.lr_alpha=2", "sampler.l0.pad=.inf", "train.warm_up=-1",
     "train.val_downscale=0", "train.keep_checkpoints=-1", "train.mask_weight=-0.1",
     "train.eikonal_fraction=0", "data.downscale=0", "render.n_samples=1",
     "render.hull.resolution=4", "render.hull.margin_px=-1", "model.variance.init=.nan",

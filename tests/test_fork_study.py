@@ -179,7 +179,7 @@ def test_the_commands_fork_one_hvs_run(tmp_path):
     assert base.index("train.lr=1e-3") < base.index("sampler=hvs")
     arm = train_command(spec, tmp_path / "d", tmp_path / "a", "l0 interp", 4)
     assert arm[-4:] == ["--resume", "--change-config", "sampler=l0",
-                        "sampler.masses=interpolant"]
+                        "sampler.l0.masses=interpolant"]
     assert arm[arm.index("--threads") + 1] == "2"
 
 

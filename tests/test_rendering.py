@@ -154,10 +154,10 @@ def test_l0_midpoint_default_at_least_as_tight_as_endpoint(sphere_model):
     o, d, hit, t_hit = rays_at_sphere(256)
     frac = {}
     for placement in ("midpoint", "endpoint"):
-        from neus_l0.config.schema import SamplerConfig
+        from neus_l0.config.schema import L0Config, SamplerConfig
 
         out = render_rays(model, o, d, RenderConfig(),
-                          build_sampler(SamplerConfig(placement=placement)))
+                          build_sampler(SamplerConfig(l0=L0Config(placement=placement))))
         frac[placement] = ((out.t_fine[hit] - t_hit[hit, None]).abs() < 0.005).float().mean()
     assert frac["midpoint"] >= frac["endpoint"] - 0.01
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from neus_l0.bounds.sphere import near_far_from_sphere
-from neus_l0.config.schema import SAMPLERS, SamplerConfig
+from neus_l0.config.schema import SAMPLERS, L0Config, SamplerConfig
 from neus_l0.render import volume as rendering
 from neus_l0.sampling.kernels import sample_l0, sample_l0_sections
 from neus_l0.sampling.upsample import (
@@ -40,7 +40,7 @@ def test_registry_builds_every_name():
     assert isinstance(build_sampler("hvs"), HVSSampler)
     assert isinstance(build_sampler("neus-exact"), NeuSExactSampler)
     assert build_sampler("l0-inverse").kind == "inverse"
-    assert build_sampler(SamplerConfig(name="l0", kind="linear")).kind == "linear"
+    assert build_sampler(SamplerConfig(name="l0", l0=L0Config(kind="linear"))).kind == "linear"
     assert build_sampler(SamplerConfig(name="hvs", base_inv_s=32.0)).base_inv_s == 32.0
     with pytest.raises(ValueError, match="neus-exact"):
         build_sampler("nope")

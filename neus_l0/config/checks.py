@@ -21,6 +21,7 @@ from neus_l0.config.schema import (
     DataConfig,
     EncodingConfig,
     HullConfig,
+    L0Config,
     OccupancyConfig,
     PointBoundConfig,
     RenderConfig,
@@ -69,7 +70,7 @@ def positive(note: str = "") -> Range:
 #: The range of each numeric key, by (config class, field). Floats not named here must
 #: only be finite.
 RULES: dict[tuple[type, str], Range] = {
-    (SamplerConfig, "pad"): at_least(0),
+    (L0Config, "pad"): at_least(0),
     (SamplerConfig, "base_inv_s"): positive(),
     (DataConfig, "downscale"): at_least(1),
     (EncodingConfig, "n_freqs"): at_least(0),
@@ -176,20 +177,21 @@ def _check_occupancy(obj: OccupancyConfig, bad: Callable[[str, str], ConfigError
 
 
 def _check_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]) -> None:
-    if obj.kind:
+    o = obj.l0
+    if o.kind:
         if obj.name not in L0_KINDS:
-            raise bad("kind", f"sampler {obj.name} has no interpolation kind (only "
+            raise bad("l0.kind", f"sampler {obj.name} has no interpolation kind (only "
                       f"{', '.join(L0_KINDS)} do)")
-        if obj.name != "l0" and obj.kind != L0_KINDS[obj.name]:
-            raise bad("kind", f"{obj.kind} contradicts sampler {obj.name} (set name: l0 and "
+        if obj.name != "l0" and o.kind != L0_KINDS[obj.name]:
+            raise bad("l0.kind", f"{o.kind} contradicts sampler {obj.name} (set name: l0 and "
                       f"the kind, or the name alone)")
-    if obj.masses == "sections" and obj.name in L0_KINDS:
-        for key, unused in (("blur", obj.blur), ("pad", obj.pad > 0),
-                            ("placement", obj.placement != "midpoint"),
-                            ("as_density", not obj.as_density)):
+    if o.masses == "sections" and obj.name in L0_KINDS:
+        for key, unused in (("blur", o.blur), ("pad", o.pad > 0),
+                            ("placement", o.placement != "midpoint"),
+                            ("as_density", not o.as_density)):
             if unused:
-                raise bad(key, "applies only to the interpolant's draw; add "
-                          "sampler.masses=interpolant")
+                raise bad(f"l0.{key}", "applies only to the interpolant's draw; add "
+                          "sampler.l0.masses=interpolant")
 
 
 #: The rules that tie several keys of one config class together.

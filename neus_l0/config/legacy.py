@@ -12,9 +12,14 @@ LEGACY_SAMPLER_KEYS: dict[str, str] = {
     "weights_as_density": "as_density",
     "l0_pad": "pad",
 }
+#: The L0 samplers' options, once keys of the sampler block itself, now of its ``l0`` block.
+L0_KEYS = ("kind", "masses", "pad", "pad_mode", "blur", "placement", "as_density")
 #: Today's dotted keys and the names they had, for errors about a value given the old way.
-FORMER_NAMES: dict[str, str] = {f"sampler.{new}": f"render.{old}"
-                                for old, new in LEGACY_SAMPLER_KEYS.items()}
+FORMER_NAMES: dict[str, str] = {
+    **{f"sampler.l0.{new}": f"render.{old}" for old, new in LEGACY_SAMPLER_KEYS.items()},
+    **{f"sampler.l0.{key}": f"sampler.{key}" for key in L0_KEYS
+       if key not in LEGACY_SAMPLER_KEYS.values()},
+}
 
 #: Keys that once did something and no longer do: read and dropped, with one warning.
 #: ``sampler.compile`` (was ``render.compile_sampler``) compiled the draw alone; the whole
@@ -46,7 +51,30 @@ _DUMPED_SAMPLER_KEYS = frozenset({"name", "kind", "pad", "pad_mode", "blur", "pl
                                   "as_density", "base_inv_s"})
 
 
-def read_legacy(data: dict) -> dict:
+def modern_override(item: str) -> str:
+    """A ``key=value`` override in today's spelling: ``sampler.pad=0.1`` is
+    ``sampler.l0.pad=0.1`` (the L0 options' own block)."""
+    key, sep, value = item.partition("=")
+    parts = key.strip().split(".")
+    if sep and len(parts) == 2 and parts[0] == "sampler" and parts[1] in L0_KEYS:
+        return f"sampler.l0.{parts[1]}={value}"
+    return item
+
+
+def _nest_l0(sampler: dict) -> dict:
+    """The sampler block with its L0 options (`L0_KEYS`) moved into its ``l0`` block (where
+    both are given, the ``l0`` block's value wins)."""
+    flat = {k: sampler[k] for k in L0_KEYS if k in sampler}
+    if not flat:
+        return sampler
+    nested = sampler.get("l0")
+    nested = dict(nested) if isinstance(nested, dict) else {}
+    out = {k: v for k, v in sampler.items() if k not in L0_KEYS}
+    out["l0"] = {**flat, **nested}
+    return out
+
+
+def _read_flat(data: dict) -> dict:
     """Move the old `render.*` sampler keys (`LEGACY_SAMPLER_KEYS`) into the sampler block.
 
     The one place where old configs and checkpoints are read: ``render.l0_pad`` becomes
@@ -79,3 +107,13 @@ def read_legacy(data: dict) -> dict:
     if sampler.get("name", "l0") in L0_KINDS:  # the old code drew from the interpolant
         sampler.setdefault("masses", "interpolant")
     return {**data, "render": render, "sampler": sampler}
+
+
+def read_legacy(data: dict) -> dict:
+    """Today's config mapping from any older one (`_read_flat`, then the L0 options into
+    ``sampler.l0``): the one place where old configs and checkpoints are read."""
+    data = _read_flat(data)
+    sampler = data.get("sampler")
+    if isinstance(sampler, dict):
+        data = {**data, "sampler": _nest_l0(sampler)}
+    return data

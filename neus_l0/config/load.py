@@ -18,7 +18,7 @@ from typing import Any
 import yaml
 
 from neus_l0.config.checks import validate
-from neus_l0.config.legacy import FORMER_NAMES, read_legacy
+from neus_l0.config.legacy import FORMER_NAMES, modern_override, read_legacy
 from neus_l0.config.schema import (
     Config,
     SamplerConfig,
@@ -171,7 +171,7 @@ def parse_overrides(items: list[str]) -> dict:
     `ConfigError`.
     """
     out: dict = {}
-    for item in items:
+    for item in map(modern_override, items):
         if "=" not in item:
             raise ConfigError(f"override '{item}' is not of the form key=value")
         key, text = item.split("=", 1)
@@ -186,7 +186,7 @@ def parse_overrides(items: list[str]) -> dict:
         parts = key.split(".")
         for part in parts[:-1]:
             if node is out and isinstance(node.get(part), str):
-                node[part] = _shorthand(part, node[part])  # sampler=l0 sampler.pad=0.1
+                node[part] = _shorthand(part, node[part])  # sampler=l0 sampler.base_inv_s=32
             node = node.setdefault(part, {})
             if not isinstance(node, dict):
                 raise ConfigError(f"override '{item}' conflicts with another override")
@@ -208,7 +208,7 @@ def _is_name(key: str, value: Any) -> bool:
 
 def _merge(base: dict, extra: dict) -> dict:
     """`extra` over `base`, recursively. A bare sampler name over a sampler block changes its
-    name only (``sampler=hvs`` keeps the file's ``sampler.pad``), and a block over a bare name
+    name only (``sampler=hvs`` keeps the file's ``sampler.l0``), and a block over a bare name
     keeps that name."""
     out = dict(base)
     for k, v in extra.items():

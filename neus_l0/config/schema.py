@@ -270,17 +270,21 @@ class RenderConfig:
 
 
 @dataclass
-class SamplerConfig:
-    """The fine-sample draw of NeuS's up-sampling (`neus_l0.sampling.upsample.build_sampler`).
-
-    In YAML and on the command line a bare name stands for the block with that name and
-    the defaults (``sampler: l0``, ``sampler=hvs``); ``sampler.pad=0.01`` sets one field. The
-    keys older configs and checkpoints used are read by `neus_l0.config.legacy`.
+class L0Config:
+    """The options of the L0 samplers (`l0`, `l0-inverse`, `l0-linear`): the interpolation
+    kind and how NeuS's section weights become the draw (`neus_l0.sampling.upsample.L0Sampler`).
     """
 
-    name: SamplerName = "l0"
-    """`hvs` (NeuS's piecewise constant), `l0` (L0 exponential, the default), `l0-inverse`,
-    `l0-linear` or `neus-exact` (the exact CDF of NeuS's opacity inside each section)."""
+    masses: Masses = "sections"
+    """Where the L0 samplers' section shares come from: `sections` (the default: each of
+    NeuS's sections keeps its own weight's share, as `hvs` draws, and the L0 interpolant of
+    the section densities only places the samples inside it:
+    `neus_l0.sampling.kernels.sample_l0_sections`; blur, pad, placement and as_density do not apply)
+    or `interpolant` (the paper's draw: the interpolant's own mass over each stretch decides
+    its share, after maxblur and pad). `sections` is the default because it keeps `hvs`'s
+    shares and only refines where the samples lie inside each section, so it lands fine
+    samples at least as near the surface as either (docs/BENCHMARKS.md, "Where do fine
+    samples land on exact SDFs?")."""
     kind: L0Kind = ""
     """L0 interpolation kind, `exp`, `inverse` or `linear` ("": the name's, e.g. `l0-linear`
     -> `linear`); only the L0 samplers have one."""
@@ -299,8 +303,8 @@ class SamplerConfig:
     maxblur widens a peak that NeuS's weights put in one section into a plateau over three,
     which spreads the fine samples away from the surface; it, not the pad, is what put the
     paper's draw behind `hvs` (docs/BENCHMARKS.md, "Where do fine samples land on exact
-    SDFs?"). `render.l0_pad` in an old
-    config or checkpoint turns it back on (with an absolute pad), as the old code ran."""
+    SDFs?"). `render.l0_pad` in an old config or checkpoint turns it back on (with an
+    absolute pad), as the old code ran."""
     placement: Placement = "midpoint"
     """How NeuS's section weights become point weights for the L0 samplers: `midpoint`
     (weights at section midpoints) or `endpoint` (average of the two adjacent sections at
@@ -309,22 +313,32 @@ class SamplerConfig:
     """Divide each section weight by its length (times the mean length) before the L0
     interpolation, so that point values are densities even when sections are uneven. Was
     `render.weights_as_density`."""
-    masses: Masses = "sections"
-    """Where the L0 samplers' section shares come from: `sections` (the default: each of
-    NeuS's sections keeps its own weight's share, as `hvs` draws, and the L0 interpolant of
-    the section densities only places the samples inside it:
-    `neus_l0.sampling.kernels.sample_l0_sections`; blur, pad, placement and as_density do not apply)
-    or `interpolant` (the paper's draw: the interpolant's own mass over each stretch decides
-    its share, after maxblur and pad). `sections` is the default because it keeps `hvs`'s
-    shares and only refines where the samples lie inside each section, so it lands fine
-    samples at least as near the surface as either (docs/BENCHMARKS.md, "Where do fine
-    samples land on exact SDFs?")."""
+
+
+@dataclass
+class SamplerConfig:
+    """The fine-sample draw of NeuS's up-sampling (`neus_l0.sampling.upsample.build_sampler`).
+
+    What every sampler shares sits here; each sampler's own options sit in its block (the
+    L0 samplers': ``l0``; `hvs` and `neus-exact` have none). In YAML and on the command line
+    a bare name stands for the block with that name and the defaults (``sampler: l0``,
+    ``sampler=hvs``); ``sampler.l0.pad=0.01`` sets one option. The keys older configs,
+    checkpoints and command lines used (``sampler.pad``, ``render.l0_pad``, ...) are read by
+    `neus_l0.config.legacy`.
+    """
+
+    name: SamplerName = "l0"
+    """`hvs` (NeuS's piecewise constant), `l0` (L0 exponential, the default), `l0-inverse`,
+    `l0-linear` or `neus-exact` (the exact CDF of NeuS's opacity inside each section)."""
     base_inv_s: float = 64.0
     """NeuS's fixed sharpness of the first up-sampling round; round i uses base * 2^i."""
 
+    l0: L0Config = field(default_factory=L0Config)
+    """The L0 samplers' options (unused by `hvs` and `neus-exact`)."""
+
     def l0_kind(self) -> str:
-        """The L0 interpolation kind in effect (`kind`, else the name's)."""
-        return self.kind or L0_KINDS.get(self.name, "exp")
+        """The L0 interpolation kind in effect (`l0.kind`, else the name's)."""
+        return self.l0.kind or L0_KINDS.get(self.name, "exp")
 
 
 @dataclass

@@ -43,7 +43,7 @@ from neus_l0.errors import NeusL0Error
 ARMS: dict[str, tuple[str, ...]] = {
     "hvs": ("sampler=hvs",),
     "l0": ("sampler=l0",),
-    "l0 interp": ("sampler=l0", "sampler.masses=interpolant"),
+    "l0 interp": ("sampler=l0", "sampler.l0.masses=interpolant"),
     "l0-inverse": ("sampler=l0-inverse",),
     "neus-exact": ("sampler=neus-exact",),
 }
@@ -244,7 +244,7 @@ def score_run(run_dir: Path, scene_dir: Path, spec: ForkSpec) -> dict:
             "pit": kinds.get("pit", {}).get("overall"),
             "thin": kinds.get("thin", {}).get("overall"),
             "sample_dist": dist, "psnr": float(np.mean(psnrs)),
-            "sampler": made.cfg.sampler.name, "masses": made.cfg.sampler.masses}
+            "sampler": made.cfg.sampler.name, "masses": made.cfg.sampler.l0.masses}
 
 
 def _scored(run_dir: Path, scene_dir: Path, spec: ForkSpec, iteration: int,

@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from neus_l0.bounds.sphere import near_far_from_sphere
-from neus_l0.config.schema import SamplerConfig
+from neus_l0.config.schema import L0Config, SamplerConfig
 from neus_l0.render.volume import coarse_z_vals
 from neus_l0.sampling.upsample import build_sampler, up_sample
 from neus_l0.synthetic import shapes as sh
@@ -52,10 +52,10 @@ FINAL_S = 512.0
 #: Samples per ray of the dense reference.
 DENSE = 4096
 #: The L0 default before this study: maxblur with the authors' absolute pad 0.001.
-_BLUR = SamplerConfig(name="l0", blur=True, pad=0.001, pad_mode="absolute",
-                      masses="interpolant")
+_BLUR = SamplerConfig(name="l0", l0=L0Config(blur=True, pad=0.001, pad_mode="absolute",
+                                             masses="interpolant"))
 #: The paper's draw without maxblur (the L0 default between the first study and `masses`).
-_INTERP = SamplerConfig(name="l0", masses="interpolant")
+_INTERP = SamplerConfig(name="l0", l0=L0Config(masses="interpolant"))
 #: The variants compared: label -> sampler settings ("interp": the interpolant's masses, the
 #: paper's draw; labels without "blur": maxblur off; bare L0 names: the default, `sections`).
 VARIANTS: dict[str, SamplerConfig] = {

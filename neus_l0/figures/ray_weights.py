@@ -212,7 +212,8 @@ def ray_profile(model, cfg, origin: np.ndarray, direction: np.ndarray,
         sections = upsample_section_weights(t, sdf, pts.norm(dim=-1), sc.base_inv_s)
         w = sections.weights  # (1, N-1)
         per_round = max(1, r.n_importance // max(1, r.up_sample_steps))
-        l0 = build_sampler(dataclasses.replace(sc, name="l0", kind=""))
+        l0 = build_sampler(dataclasses.replace(sc, name="l0",
+                                               l0=dataclasses.replace(sc.l0, kind="")))
         fine = {"hvs": build_sampler("hvs").draw(sections, per_round)[0] * s,
                 "l0": l0.draw(sections, per_round)[0] * s}
         if l0.masses == "sections":  # the section weights' shares, the interpolant inside

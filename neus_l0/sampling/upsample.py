@@ -322,8 +322,9 @@ class L0Sampler:
 
 
 def _l0(cfg: SamplerConfig) -> L0Sampler:
-    return L0Sampler(cfg.name, cfg.l0_kind(), cfg.pad, cfg.pad_mode, cfg.blur, cfg.placement,
-                     cfg.as_density, cfg.base_inv_s, cfg.masses)
+    o = cfg.l0
+    return L0Sampler(cfg.name, cfg.l0_kind(), o.pad, o.pad_mode, o.blur, o.placement,
+                     o.as_density, cfg.base_inv_s, o.masses)
 
 
 #: The one registry of sampler names: name -> builder from a `SamplerConfig`.
