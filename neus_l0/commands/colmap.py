@@ -81,9 +81,9 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.photos.pipeline import PHOTO_SCENE_NAMES, PhotoOptions, photos_to_scene
 
     sphere = _parse_sphere(args)
+    check_not_input(args.out, "OUT", [args.photos, args.masks, args.sparse])
     out = check_output_dir(args.out, "OUT", ("colmap_summary.json",), PHOTO_SCENE_NAMES,
                            "a scene made from photos")
-    check_not_input(out, "OUT", [args.photos, args.masks, args.sparse])
     if args.sparse and (args.camera_model or args.max_features):
         raise NeusL0Error("--camera-model and --max-features apply to SfM, not to --sparse")
     sfm_opts = sfm.SfmOptions(camera_model=args.camera_model or sfm.DEFAULT_CAMERA_MODEL,

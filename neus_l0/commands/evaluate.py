@@ -68,9 +68,9 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.mesh.memory import available_memory
 
     out = args.json if args.json is not None else args.mesh.with_name(args.mesh.name + ".eval.json")
-    check_output_file(out, "--json")
     inputs = [args.mesh, args.scene, args.dtu, args.cull]
     check_not_input(out, "--json", inputs)
+    check_output_file(out, "--json")
     if args.error_maps is not None:
         check_output_dir(args.error_maps, "--error-maps", (), ("accuracy.ply", "completeness.ply"),
                          "an error-map folder")

@@ -68,8 +68,9 @@ def _check(args: argparse.Namespace):
 
     if args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
-    out = check_output_file(args.out if args.out else Path(args.run) / "mesh.ply", "--out")
-    check_not_input(out, "--out", [args.run, args.checkpoint])
+    out = check_not_input(args.out if args.out else Path(args.run) / "mesh.ply", "--out",
+                          [args.run, args.checkpoint])
+    check_output_file(out, "--out")
     if not args.out:  # the run's own mesh stays inside the run
         inside(args.run, out)
     if out.suffix.lower().lstrip(".") not in MESH_FORMATS:

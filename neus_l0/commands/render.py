@@ -87,9 +87,9 @@ def run(args: argparse.Namespace) -> int:
     options.check()
     out = None
     if args.out:
+        check_not_input(args.out, "--out", [args.run, args.scene, args.checkpoint])
         out = check_output_dir(args.out, "--out", ("metrics.json",), RENDER_NAMES,
                                "a render folder")
-        check_not_input(out, "--out", [args.run, args.scene, args.checkpoint])
     device = pick_device(args.device)
     use_threads(args.threads, device)
     result = render_run(args.run, out, options, device, progress=not args.quiet)

@@ -57,8 +57,8 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.run.folder import RUN_LEFTOVERS, RUN_RECORDS
     from neus_l0.train.loop import train
 
+    check_not_input(args.out, "--out", [args.data])
     run_dir = check_output_dir(args.out, "--out", RUN_RECORDS, RUN_LEFTOVERS, "a run folder")
-    check_not_input(run_dir, "--out", [args.data])
     if args.resume and (run_dir / "config.yaml").is_file():
         cfg = _resumed_config(run_dir, args.overrides, args.change_config)
     else:
