@@ -91,8 +91,8 @@ def check_output_dir(path: str | Path, flag: str, records: Iterable[str] = (),
             raise NeusL0Error(f"{flag} {path}: cannot list it ({exc.strerror or exc})") from None
         if strangers:
             more = f" (and {len(strangers) - 1} more)" if len(strangers) > 1 else ""
-            raise NeusL0Error(f"{flag} {path}: holds {strangers[0]}{more}, which is not "
-                              f"part of {what}; give a new or empty folder (nothing was written)")
+            raise NeusL0Error(f"{flag} {path}: holds {strangers[0]}{more}: not {what} and not "
+                              "empty; give a new or empty folder (nothing was written)")
     return path
 
 

@@ -425,8 +425,12 @@ def _not_written_here(target: Path) -> list[str]:
     files = scene_files(target)
     if isinstance(listed, list):
         own = {str(f) for f in listed} | {"scene.json"}
-        return [f for f in files if f not in own]
-    return [f for f in files if not (_LAYOUT_FILE.match(f) and f.split("/")[0] in SCENE_ENTRIES)]
+        strangers = [f for f in files if f not in own]
+    else:
+        strangers = [f for f in files
+                     if not (_LAYOUT_FILE.match(f) and f.split("/")[0] in SCENE_ENTRIES)]
+    folders = sorted(p.relative_to(target).as_posix() for p in target.rglob("*") if p.is_dir())
+    return sorted(strangers + [d for d in folders if d not in ("image", "mask")])
 
 
 def _sibling(target: Path, kind: str) -> Path:
