@@ -73,15 +73,17 @@ STUDY_NAMES = ("sampling.csv", "summary.md", "within_0.01.png", "depth_err.png",
 
 def run(args: argparse.Namespace) -> int:
     import time
+    from pathlib import Path
 
     from neus_l0.commands._paths import check_output_dir
     from neus_l0.errors import NeusL0Error
 
-    out = check_output_dir(args.out, "--out", (), STUDY_NAMES, "a study folder")
+    out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise NeusL0Error(f"{out}: cannot create the output folder ({exc.strerror})") from None
+    check_output_dir(out, "--out", (), STUDY_NAMES, "a study folder")
     if args.study == "fork":
         return _fork(args, out)
     if args.study == "frontier":

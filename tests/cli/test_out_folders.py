@@ -77,11 +77,13 @@ def _argvs(scene: Path, run: Path, out: Path) -> dict[str, list[str]]:
                   "--quiet", "--no-plots"],
         "eval": ["eval", str(mesh), "--scene", str(scene), "--json", str(out.parent / "e.json"),
                  "--error-maps", str(out), "--no-progress"],
+        "figures": ["figures", "--bench", str(run), "--out", str(out)],
+        "study": ["study", "sampling", "--out", str(out), "--quick", "--rays", "4"],
     }
 
 
 @pytest.mark.parametrize("command", ["train", "demo", "synth", "colmap", "render", "bench",
-                                     "eval"])
+                                     "eval", "figures", "study"])
 def test_a_users_folder_is_refused_by_every_command(tiny_scene, trained, users_folder,
                                                     capsys, command):
     before = _snapshot(users_folder)
