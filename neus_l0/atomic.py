@@ -7,6 +7,11 @@ private 0600. A writer killed mid-write leaves its temporary file (``.NAME.XXXX.
 behind; `remove_orphans` clears them where one writer owns the folder (a locked run folder).
 A write that fails (no permission, a file in the way, a full disk, also inside torch's own
 writer: `atomic_torch_save`) raises `neus_l0.errors.OutputError`, one line naming the file.
+
+Writes into a folder this tool owns (a run folder) pass ``within=FOLDER``: `inside` then
+refuses a path that, once symlinks are followed, leaves that folder (a ``metrics.jsonl`` or
+a ``checkpoints/`` linked elsewhere), so that nothing is written outside the run through a
+link someone planted. Appends (`append_text`) follow the same rule and never follow a link.
 """
 
 from __future__ import annotations
@@ -26,18 +31,41 @@ from neus_l0.errors import OutputError
 TORCH_WRITE_FAILURES = ("PytorchStreamWriter failed", "unexpected pos", "file write failed")
 
 
+def inside(folder: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """`path`, checked to stay inside `folder` once every symlink on the way is followed.
+
+    `folder` itself may be a link (it is resolved too); what is refused is a link *in* it
+    (``RUN/metrics.jsonl -> ~/.bashrc``, ``RUN/checkpoints -> /elsewhere``) whose target
+    lies outside. A path that does not exist yet is judged by its existing parents.
+
+    Raises:
+        OutputError: naming `path`, where it leads and the folder.
+    """
+    folder, path = Path(folder), Path(path)
+    real = Path(os.path.realpath(path))
+    home = Path(os.path.realpath(folder))
+    if real != home and home not in real.parents:
+        raise OutputError(f"{path}: a symlink leads out of {folder} (to {real}); not written "
+                          "through it (remove the link)")
+    return path
+
+
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike,
+                within: str | os.PathLike | None = None) -> Iterator[Path]:
     """Yield a temporary path next to `path`; on success, rename it onto `path`.
 
     The caller writes the complete file to the yielded path. On an exception the temporary
-    file is removed and `path` is left untouched.
+    file is removed and `path` is left untouched. `within`: a folder `path` must stay in
+    (`inside`).
 
     Raises:
         OutputError: an `OSError` while making the folder or the temporary file, writing,
-            or renaming (naming `path` and why).
+            or renaming (naming `path` and why); a path leaving `within`.
     """
     path = Path(path)
+    if within is not None:
+        inside(within, path)
     tmp_path = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -84,14 +112,37 @@ def remove_orphans(folder: str | os.PathLike) -> list[Path]:
     return removed
 
 
-def atomic_write(path: str | os.PathLike, writer: Callable[[Path], Any]) -> Path:
-    """Call `writer(tmp_path)` to write the file, then move it atomically onto `path`."""
-    with atomic_path(path) as tmp:
+def atomic_write(path: str | os.PathLike, writer: Callable[[Path], Any],
+                 within: str | os.PathLike | None = None) -> Path:
+    """Call `writer(tmp_path)` to write the file, then move it atomically onto `path`
+    (`within`: see `atomic_path`)."""
+    with atomic_path(path, within) as tmp:
         writer(tmp)
     return Path(path)
 
 
-def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
+def append_text(path: str | os.PathLike, text: str, within: str | os.PathLike) -> None:
+    """Append `text` (UTF-8, one write: keep it small) to `path` inside `within`.
+
+    The file is opened without following a final symlink (``O_NOFOLLOW``), after `inside`
+    checked the folders on the way.
+
+    Raises:
+        OutputError: the path leaves `within`, is a link, or cannot be written.
+    """
+    path = Path(path)
+    inside(within, path)
+    flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(path, flags, 0o666)
+        with os.fdopen(fd, "a", encoding="utf-8") as f:
+            f.write(text)
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot append ({exc.strerror or exc})") from None
+
+
+def atomic_torch_save(path: str | os.PathLike, obj: Any,
+                      within: str | os.PathLike | None = None) -> Path:
     """`torch.save(obj)` into `path` atomically; torch's own write failures
     (`TORCH_WRITE_FAILURES`) raise `OutputError` like any other write's."""
     import torch
@@ -104,20 +155,23 @@ def atomic_torch_save(path: str | os.PathLike, obj: Any) -> Path:
                 raise
             raise OSError(f"torch: {str(exc).splitlines()[0]}; is the disk full?") from None
 
-    return atomic_write(path, write)
+    return atomic_write(path, write, within)
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write `text` to `path` atomically (UTF-8)."""
-    return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+def atomic_write_text(path: str | os.PathLike, text: str,
+                      within: str | os.PathLike | None = None) -> Path:
+    """Write `text` to `path` atomically (UTF-8; `within`: see `atomic_path`)."""
+    return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"), within)
 
 
-def atomic_write_json(path: str | os.PathLike, obj: Any) -> Path:
-    """Write `obj` as indented JSON to `path` atomically."""
-    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+def atomic_write_json(path: str | os.PathLike, obj: Any,
+                      within: str | os.PathLike | None = None) -> Path:
+    """Write `obj` as indented JSON to `path` atomically (`within`: see `atomic_path`)."""
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True) + "\n", within)
 
 
-def atomic_write_png(path: str | os.PathLike, bgr: Any) -> Path:
+def atomic_write_png(path: str | os.PathLike, bgr: Any,
+                     within: str | os.PathLike | None = None) -> Path:
     """Encode an (H, W[, 3]) uint8 image (OpenCV's BGR order) as PNG and write it atomically.
 
     Raises:
@@ -129,4 +183,4 @@ def atomic_write_png(path: str | os.PathLike, bgr: Any) -> Path:
     if not ok:
         raise OSError(f"{path}: PNG encoding failed")
     data = buf.tobytes()
-    return atomic_write(path, lambda p: p.write_bytes(data))
+    return atomic_write(path, lambda p: p.write_bytes(data), within)

@@ -37,6 +37,7 @@ COMMANDS: list[tuple[str, str]] = [
     ("eval", "evaluate"),
     ("bench", "bench"),
     ("figures", "figures"),
+    ("checkpoint", "checkpoint"),
     ("study", "study"),
     ("config", "config"),
 ]

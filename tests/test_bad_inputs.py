@@ -260,7 +260,7 @@ def test_a_diverging_run_exits_non_zero_keeping_its_last_good_checkpoint(scene96
                    "diverged at iteration", "the last good checkpoint is ckpt_")
     good = line.split("the last good checkpoint is ")[1].split(";")[0]
     assert [n for n in checkpoints(run_copy) if n.endswith(".pt")][-1] == good
-    state = torch.load(run_copy / "checkpoints" / good, weights_only=False)
+    state = torch.load(run_copy / "checkpoints" / good, weights_only=True)
     assert state["iteration"] == int(good[5:12]) >= 4
     assert all(torch.isfinite(v).all() for v in state["model"].values())
 

@@ -197,7 +197,7 @@ def test_truncated_newest_checkpoint_falls_back_and_is_kept(run, capsys):
 
 def test_load_trained_model_and_mesh_fall_back(run, tiny_run, tmp_path, capsys):
     ckpt1, ckpt2 = list_checkpoints(run)
-    ref = torch.load(ckpt1, weights_only=False)["model"]
+    ref = torch.load(ckpt1, weights_only=True)["model"]
     _truncate(ckpt2)
     model, cfg, info = load_trained_model(run)
     assert info["iteration"] == 1 and info["path"] == ckpt1
@@ -219,7 +219,7 @@ def test_load_trained_model_and_mesh_fall_back(run, tiny_run, tmp_path, capsys):
 
 def test_nan_newest_checkpoint_falls_back(run, capsys):
     ckpt1, ckpt2 = list_checkpoints(run)
-    state = torch.load(ckpt2, weights_only=False)
+    state = torch.load(ckpt2, weights_only=True)
     key = next(k for k in state["model"] if state["model"][k].is_floating_point())
     state["model"][key].view(-1)[0] = float("nan")
     torch.save(state, ckpt2)

@@ -128,7 +128,7 @@ def test_nan_checkpoint_is_refused(small, scene, tmp_path):
     run = tmp_path / "run"
     train(scene, cfg, run, progress=False)
     path = latest_checkpoint(run)
-    state = torch.load(path, weights_only=False)
+    state = torch.load(path, weights_only=True)
     key = next(k for k in state["model"] if state["model"][k].is_floating_point())
     state["model"][key].view(-1)[0] = float("nan")
     torch.save(state, path)

@@ -108,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.commands._paths import check_output_dir
     from neus_l0.device import pick_device
     from neus_l0.experiments.sweep import (
+        SWEEP_NAMES,
         SweepSpec,
         check_spec,
         device_defaults,
@@ -124,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         psnr_pixels=args.psnr_pixels, backend=args.backend, timeout=args.timeout,
         snapshots=args.snapshots)
     check_spec(spec)
-    check_output_dir(args.out, "--out")
+    check_output_dir(args.out, "--out", ("sweep.json",), SWEEP_NAMES, "a bench folder")
     chosen = [f"--{k.replace('_', '-')} {getattr(spec, k)}" for k in device_defaults(spec.device)
               if getattr(args, k) is None]
     if chosen and not args.quiet:

@@ -76,12 +76,14 @@ def _parse_sphere(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from neus_l0.commands._paths import check_output_dir
+    from neus_l0.commands._paths import check_not_input, check_output_dir
     from neus_l0.photos import sfm
-    from neus_l0.photos.pipeline import PhotoOptions, photos_to_scene
+    from neus_l0.photos.pipeline import PHOTO_SCENE_NAMES, PhotoOptions, photos_to_scene
 
     sphere = _parse_sphere(args)
-    out = check_output_dir(args.out, "OUT")
+    check_not_input(args.out, "OUT", [args.photos, args.masks, args.sparse])
+    out = check_output_dir(args.out, "OUT", ("colmap_summary.json",), PHOTO_SCENE_NAMES,
+                           "a scene made from photos")
     if args.sparse and (args.camera_model or args.max_features):
         raise NeusL0Error("--camera-model and --max-features apply to SfM, not to --sparse")
     sfm_opts = sfm.SfmOptions(camera_model=args.camera_model or sfm.DEFAULT_CAMERA_MODEL,

@@ -47,10 +47,10 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from neus_l0.commands._paths import check_output_dir
-    from neus_l0.pipelines.demo import DemoOptions, run_demo
+    from neus_l0.pipelines.demo import DEMO_NAMES, DEMO_RECORDS, DemoOptions, run_demo
 
     check_numbers(args)
-    out = check_output_dir(args.out, "--out")
+    out = check_output_dir(args.out, "--out", DEMO_RECORDS, DEMO_NAMES, "a demo folder")
     result = run_demo(DemoOptions(out=out, conf=args.conf, overrides=list(args.overrides),
                                   device=args.device, threads=args.threads,
                                   resolution=args.resolution, quiet=args.quiet))

@@ -63,14 +63,18 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 def run(args: argparse.Namespace) -> int:
     from neus_l0.atomic import atomic_write_text
-    from neus_l0.commands._paths import check_output_dir, check_output_file
+    from neus_l0.commands._paths import check_not_input, check_output_dir, check_output_file
     from neus_l0.evaluation.score import ScoreSpec, score_mesh
     from neus_l0.mesh.memory import available_memory
 
     out = args.json if args.json is not None else args.mesh.with_name(args.mesh.name + ".eval.json")
+    inputs = [args.mesh, args.scene, args.dtu, args.cull]
+    check_not_input(out, "--json", inputs)
     check_output_file(out, "--json")
     if args.error_maps is not None:
-        check_output_dir(args.error_maps, "--error-maps")
+        check_output_dir(args.error_maps, "--error-maps", (), ("accuracy.ply", "completeness.ply"),
+                         "an error-map folder")
+        check_not_input(args.error_maps, "--error-maps", inputs)
     spec = ScoreSpec(
         scene=args.scene, dtu_dir=args.dtu, scan=args.scan, cull=args.cull,
         cull_dilate=args.cull_dilate, error_maps=args.error_maps, vmax=args.vmax,

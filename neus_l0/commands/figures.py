@@ -59,7 +59,8 @@ def run(args: argparse.Namespace) -> int:
         raise NeusL0Error(f"--samplers {args.samplers!r}: give distinct sampler names")
     if args.width < 32 or args.crop < 32:
         raise NeusL0Error("--width and --crop must be at least 32 pixels")
-    bench, out = Path(args.bench), check_output_dir(args.out, "--out")
+    bench, out = Path(args.bench), check_output_dir(args.out, "--out", (), ("*.png", "index.md"),
+                                                        "a figures folder")
     if args.regions < 1:
         raise NeusL0Error(f"--regions {args.regions}: give at least 1")
     scene_dir, runs = select_runs(bench, samplers, args.scene, args.budget, args.seed)

@@ -59,7 +59,8 @@ def _check(args: argparse.Namespace):
     import sys
     from pathlib import Path
 
-    from neus_l0.commands._paths import check_output_file
+    from neus_l0.atomic import inside
+    from neus_l0.commands._paths import check_not_input, check_output_file
     from neus_l0.errors import NeusL0Error
     from neus_l0.mesh.cleanup import CleanupOptions
     from neus_l0.mesh.extract import MESH_FORMATS, SPARSE_ABOVE
@@ -67,7 +68,11 @@ def _check(args: argparse.Namespace):
 
     if args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
-    out = check_output_file(args.out if args.out else Path(args.run) / "mesh.ply", "--out")
+    out = check_not_input(args.out if args.out else Path(args.run) / "mesh.ply", "--out",
+                          [args.run, args.checkpoint])
+    check_output_file(out, "--out")
+    if not args.out:  # the run's own mesh stays inside the run
+        inside(args.run, out)
     if out.suffix.lower().lstrip(".") not in MESH_FORMATS:
         raise NeusL0Error(f"--out {out}: unsupported mesh format (use "
                           f"{', '.join('.' + k for k in MESH_FORMATS)})")

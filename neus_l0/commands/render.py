@@ -74,10 +74,10 @@ def run(args: argparse.Namespace) -> int:
     import json
     import sys
 
-    from neus_l0.commands._paths import check_output_dir
+    from neus_l0.commands._paths import check_not_input, check_output_dir
     from neus_l0.commands._threads import use_threads
     from neus_l0.device import pick_device
-    from neus_l0.pipelines.render_run import RenderOptions, render_run
+    from neus_l0.pipelines.render_run import RENDER_NAMES, RenderOptions, render_run
 
     options = RenderOptions(
         views=args.views, frames=args.frames, elevation=args.elevation, width=args.width,
@@ -85,7 +85,11 @@ def run(args: argparse.Namespace) -> int:
         test_views=_test_views(args.test_views), holdout=args.holdout, scene=args.scene,
         checkpoint=args.checkpoint)
     options.check()
-    out = check_output_dir(args.out, "--out") if args.out else None
+    out = None
+    if args.out:
+        check_not_input(args.out, "--out", [args.run, args.scene, args.checkpoint])
+        out = check_output_dir(args.out, "--out", ("metrics.json",), RENDER_NAMES,
+                               "a render folder")
     device = pick_device(args.device)
     use_threads(args.threads, device)
     result = render_run(args.run, out, options, device, progress=not args.quiet)

@@ -66,10 +66,16 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     return p
 
 
+#: What the studies write at the top of their folder (sampling, fork, frontier).
+STUDY_NAMES = ("sampling.csv", "summary.md", "within_0.01.png", "depth_err.png", "scenes",
+               "runs", "fork.csv", "fork.json", "frontier.csv", "frontier.png", ".lock")
+
+
 def run(args: argparse.Namespace) -> int:
     import time
     from pathlib import Path
 
+    from neus_l0.commands._paths import check_output_dir
     from neus_l0.errors import NeusL0Error
 
     out = Path(args.out)
@@ -77,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise NeusL0Error(f"{out}: cannot create the output folder ({exc.strerror})") from None
+    check_output_dir(out, "--out", (), STUDY_NAMES, "a study folder")
     if args.study == "fork":
         return _fork(args, out)
     if args.study == "frontier":

@@ -37,11 +37,14 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 
 def run(args: argparse.Namespace) -> int:
-    from neus_l0.commands._paths import check_output_dir
+    from pathlib import Path
+
+    from neus_l0.commands._paths import check_not_input, check_output_dir
     from neus_l0.mesh.memory import available_memory
     from neus_l0.synthetic.scene import check_render_memory, check_scene_args, make_scene
 
-    check_output_dir(args.out, "OUT")
+    check_not_input(args.out, "OUT", [Path(args.scene)])
+    check_output_dir(args.out, "OUT", ("scene.json",), (), "a synthetic scene")
     check_scene_args(args.views, args.width, args.height, args.spp, args.seed)
     check_render_memory(args.views, args.width, args.height, args.spp, available_memory())
     out = make_scene(args.scene, args.out, views=args.views, width=args.width,

@@ -48,15 +48,17 @@ def run(args: argparse.Namespace) -> int:
 
     import sys
 
-    from neus_l0.commands._paths import check_output_dir
+    from neus_l0.commands._paths import check_not_input, check_output_dir
     from neus_l0.commands._threads import check_threads
     from neus_l0.config.load import load_config
     from neus_l0.device import pick_device, use_cpu_threads
     from neus_l0.errors import NeusL0Error
     from neus_l0.formats.open import open_scene
+    from neus_l0.run.folder import RUN_LEFTOVERS, RUN_RECORDS
     from neus_l0.train.loop import train
 
-    run_dir = check_output_dir(args.out, "--out")
+    check_not_input(args.out, "--out", [args.data])
+    run_dir = check_output_dir(args.out, "--out", RUN_RECORDS, RUN_LEFTOVERS, "a run folder")
     if args.resume and (run_dir / "config.yaml").is_file():
         cfg = _resumed_config(run_dir, args.overrides, args.change_config)
     else:

@@ -46,6 +46,9 @@ from neus_l0.experiments.runner import BENCH_OVERRIDES, ForwardSignals, RunSpec,
 from neus_l0.run.lock import RunLock
 from neus_l0.train.signals import StopOnSignal
 
+#: What a sweep writes at the top of its folder (its own, for --out checks).
+SWEEP_NAMES = ("sweep.json", "runs", "scenes", "plots", "results.csv", "results.json", ".lock",
+               "progress.json")
 #: Settings that must match between invocations on the same sweep folder.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
                "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels",

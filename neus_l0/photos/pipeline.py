@@ -17,6 +17,9 @@ import numpy as np
 
 from neus_l0.errors import NeusL0Error
 
+#: What `neus-l0 colmap` writes at the top of its scene folder (its own, for --out checks).
+PHOTO_SCENE_NAMES = ("image", "mask", "cameras_sphere.npz", "sources.txt", "unregistered.txt",
+                     "colmap_summary.json", "sphere_preview.png", "colmap", "sparse_points.npz")
 #: Views shown in sphere_preview.png.
 PREVIEW_VIEWS = 4
 

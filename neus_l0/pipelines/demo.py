@@ -25,6 +25,11 @@ DEMO_RESERVE_S = 14.0
 DEMO_CONF = "demo"
 
 
+#: A demo folder's records (any one makes a folder the demo's) and what it writes at its top.
+DEMO_RECORDS = ("metrics.json", "scene/scene.json", "run/run.json", "run/checkpoints/ckpt_*.pt")
+DEMO_NAMES = ("scene", "run", "mesh.ply", "metrics.json", "comparison.png")
+
+
 @dataclasses.dataclass
 class DemoOptions:
     """What `neus-l0 demo` was asked for (the command's flags, already checked)."""
@@ -36,6 +41,11 @@ class DemoOptions:
     threads: int | None = None
     resolution: int = DEMO_RESOLUTION
     quiet: bool = False
+
+
+#: A demo folder's records (any one makes a folder the demo's) and what it writes at its top.
+DEMO_RECORDS = ("metrics.json", "scene/scene.json", "run/run.json", "run/checkpoints/ckpt_*.pt")
+DEMO_NAMES = ("scene", "run", "mesh.ply", "metrics.json", "comparison.png")
 
 
 @dataclasses.dataclass

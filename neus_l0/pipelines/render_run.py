@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from neus_l0.atomic import atomic_path, atomic_write_json, atomic_write_png
+from neus_l0.atomic import atomic_path, atomic_write_json, atomic_write_png, inside
 from neus_l0.bounds.hull import VisualHull, load_run_hull
 from neus_l0.data.scene import Scene
 from neus_l0.data.split import split_views
@@ -52,6 +52,8 @@ from neus_l0.run.checkpoints import latest_checkpoint, load_trained_model
 #: The pictures of a frame, each a folder of PNGs and an MP4.
 CHANNELS = ("color", "normal", "depth")
 VIEWS = ("orbit", "train", "test")
+#: What a render writes at the top of its folder (its own, for --out checks).
+RENDER_NAMES = (*CHANNELS, *(f"{c}.mp4" for c in CHANNELS), "metrics.json")
 _FRAME = re.compile(r"^(\d{4,})\.png$")
 
 
@@ -437,7 +439,11 @@ def render_run(run_dir: str | Path, out: str | Path | None = None,
     run_dir = Path(run_dir)
     if options.checkpoint is None and latest_checkpoint(run_dir) is None:
         raise NeusL0Error(f"{run_dir}: no checkpoints/ckpt_*.pt (train first)")
-    out = Path(out) if out is not None else run_dir / "render" / options.views
+    if out is None:  # inside the run: nothing of it may lead out (`neus_l0.atomic.inside`)
+        out = run_dir / "render" / options.views
+        for name in RENDER_NAMES:
+            inside(run_dir, out / name)
+    out = Path(out)
     model, cfg, info = load_trained_model(run_dir, device, options.checkpoint)
     scene = run_scene(run_dir, options, cfg.data.downscale)
     path = camera_path(scene, options)

@@ -3,13 +3,22 @@
 A checkpoint (``RUN/checkpoints/ckpt_NNNNNNN.pt``) is a dict with ``iteration``, ``model``
 (state dict), ``optimizer`` (state dict), ``rng`` (the ray/sample generator's state and
 torch's global CPU/CUDA states), ``config`` (the resolved config as a dict), ``scale_mat``
-(4x4 list, normalised -> world) and ``has_background``.
+(4x4 list, normalised -> world), ``has_background`` and ``scene_fingerprint``: plain data
+only (`neus_l0.run.checkpoint_schema`), read with ``torch.load(weights_only=True)``, so that
+loading a checkpoint never runs code from it.
+
+Unsafe files. A checkpoint whose pickle names any Python global (a function, a class: an
+older neus-l0's numpy arrays, or a planted ``os.system``) is not loaded: one line names the
+file and the command that converts it, ``neus-l0 checkpoint upgrade FILE --trust-pickle``
+(`upgrade_checkpoint`), which unpickles it in full only on that explicit request. Such a
+file stops the search for a checkpoint (it is not set aside as damaged).
 
 Damaged checkpoints. `load_newest_checkpoint` (used by `load_trained_model`, hence by
 ``mesh``, ``demo`` and ``figures``, and by a resumed training) tries the checkpoints newest
 first. A file whose *content* is bad -- it does not unpickle (truncated, overwritten), lacks
-the checkpoint keys, or holds NaN/inf in the model or optimiser state (which
-`save_checkpoint` never writes, so the file was damaged afterwards) -- is renamed to
+a checkpoint key or has one of the wrong kind (`schema_problem`: ``iteration: "abc"``, no
+``rng``), or holds NaN/inf in the model or optimiser state (which `save_checkpoint` never
+writes, so the file was damaged afterwards) -- is renamed to
 ``<name>.corrupt`` (kept for inspection, no longer listed) as soon as an older checkpoint
 loads, and one line on stderr names both. Failures that say nothing about the content (the
 file is missing or not readable, memory ran out, a module needed by the pickle is missing)
@@ -19,6 +28,7 @@ the error names the newest one and why.
 
 from __future__ import annotations
 
+import pickle
 import re
 import sys
 from pathlib import Path
@@ -31,12 +41,31 @@ from neus_l0.config.load import config_from_dict
 from neus_l0.config.schema import Config
 from neus_l0.errors import NeusL0Error
 from neus_l0.fields.model import NeuSModel, make_model
+from neus_l0.run.checkpoint_schema import schema_problem, to_plain
 
 CKPT_RE = re.compile(r"^ckpt_(\d+)\.pt$")
 
 
 class CorruptCheckpointError(NeusL0Error):
     """A checkpoint file whose content is unusable (truncated, not a checkpoint, NaN/inf)."""
+
+
+class UnsafeCheckpointError(NeusL0Error):
+    """A checkpoint that only a full unpickling could load (it names Python globals)."""
+
+
+def _needs_pickle(exc: BaseException) -> bool:
+    """Whether `torch.load(weights_only=True)` refused a file for naming a global (as
+    opposed to failing on damaged bytes)."""
+    return isinstance(exc, pickle.UnpicklingError) and "GLOBAL" in str(exc)
+
+
+def unsafe_line(path: Path) -> str:
+    """The one line about a checkpoint that needs pickle: why, and how to convert it."""
+    return (f"{path}: not loaded: it holds Python objects that only a full unpickling could "
+            "build, which runs any code the file carries (a checkpoint from an older neus-l0, "
+            "or a planted one); if you trust where it came from, convert it with: neus-l0 "
+            f"checkpoint upgrade {path} --trust-pickle")
 
 
 def _first_line(exc: BaseException, limit: int = 160) -> str:
@@ -93,18 +122,24 @@ def _non_finite_key(tree: Any, prefix: str = "") -> str | None:
 
 
 def save_checkpoint(path: str | Path, state: dict, keep: int = 0) -> Path:
-    """Write `state` atomically to `path`; refuse NaN/inf; keep only the newest `keep`.
+    """Write `state` atomically to `path` inside its run; refuse NaN/inf; keep only the
+    newest `keep`.
+
+    The state is made plain first (`to_plain`: numpy values as lists and numbers), so that
+    it loads with ``weights_only=True``; the run folder is ``path.parent.parent``, and a
+    ``checkpoints/`` linked out of it is refused (`neus_l0.atomic.inside`).
 
     Raises:
         NeusL0Error: when the model or optimiser state is not finite (nothing is written).
-        OutputError: when it cannot be written (a full disk, ...; nothing is written).
+        OutputError: when it cannot be written (a full disk, a link out of the run, ...;
+            nothing is written).
     """
     path = Path(path)
     bad = _non_finite_key({"model": state.get("model"), "optimizer": state.get("optimizer")})
     if bad:
         raise NeusL0Error(f"{path}: not saved: the training state has NaN/inf in '{bad}' "
                           "(training diverged; try a lower train.lr)")
-    atomic_torch_save(path, state)
+    atomic_torch_save(path, to_plain(state), within=path.parent.parent)
     if keep > 0:
         for old in list_checkpoints(path.parent.parent)[:-keep]:
             if old != path:
@@ -112,36 +147,79 @@ def save_checkpoint(path: str | Path, state: dict, keep: int = 0) -> Path:
     return path
 
 
-def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
-    """Read a checkpoint and check it.
-
-    Raises:
-        CorruptCheckpointError: the content is bad (does not unpickle, missing keys,
-            NaN/inf in the model or optimiser).
-        NeusL0Error: the file cannot be read for another reason (missing, no permission, a
-            folder, out of memory, a module the pickle names is missing).
-    """
-    path = Path(path)
+def _read(path: Path, map_location: str | torch.device) -> Any:
+    """`torch.load` with ``weights_only=True``, its failures sorted into our errors."""
     try:
-        state = torch.load(path, map_location=map_location, weights_only=False)
+        return torch.load(path, map_location=map_location, weights_only=True)
     except (FileNotFoundError, PermissionError, IsADirectoryError, MemoryError, ImportError,
             torch.OutOfMemoryError) as exc:
         raise NeusL0Error(f"{path}: cannot read checkpoint ({_first_line(exc)})") from None
     except Exception as exc:  # noqa: BLE001 - truncated zip, unpickling errors, EOF, ...
+        if _needs_pickle(exc):
+            raise UnsafeCheckpointError(unsafe_line(path)) from None
         raise CorruptCheckpointError(f"{path}: cannot read checkpoint "
                                      f"({_first_line(exc)})") from None
-    if not isinstance(state, dict):
-        raise CorruptCheckpointError(f"{path}: not a neus-l0 checkpoint (a "
-                                     f"{type(state).__name__}, not a dict)")
-    missing = [k for k in ("iteration", "model", "optimizer", "config") if k not in state]
-    if missing:
-        raise CorruptCheckpointError(f"{path}: not a neus-l0 checkpoint "
-                                     f"(missing {', '.join(missing)})")
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    """Read a checkpoint (``weights_only=True``: no code from the file runs) and check it.
+
+    Raises:
+        CorruptCheckpointError: the content is bad (does not unpickle, a missing key or
+            one of the wrong kind: `schema_problem`, NaN/inf in the model or optimiser).
+        UnsafeCheckpointError: it needs a full unpickling (`unsafe_line`).
+        NeusL0Error: the file cannot be read for another reason (missing, no permission, a
+            folder, out of memory).
+    """
+    path = Path(path)
+    state = _read(path, map_location)
+    problem = schema_problem(state)
+    if problem:
+        raise CorruptCheckpointError(f"{path}: {problem}")
     bad = _non_finite_key({"model": state["model"], "optimizer": state["optimizer"]})
     if bad:
         raise CorruptCheckpointError(f"{path}: refusing checkpoint with NaN/inf in '{bad}'; "
                                      "resume from an earlier checkpoint (delete this one)")
     return state
+
+
+def upgrade_checkpoint(path: str | Path, out: str | Path | None = None,
+                       trust_pickle: bool = False) -> tuple[Path, bool]:
+    """Rewrite a checkpoint that needs pickle as plain data (`to_plain`), checked.
+
+    Args:
+        path: the checkpoint.
+        out: where the plain checkpoint goes (default: over `path`, atomically).
+        trust_pickle: the user's explicit consent to unpickle `path` in full, which runs any
+            code it carries; without it nothing is read beyond what ``weights_only`` allows.
+
+    Returns:
+        (the file written or `path`, whether anything was converted).
+
+    Raises:
+        NeusL0Error: no consent, or the file is not a checkpoint even once unpickled.
+    """
+    path = Path(path)
+    try:
+        load_checkpoint(path)
+        return path, False  # already plain: nothing to do
+    except UnsafeCheckpointError:
+        if not trust_pickle:
+            raise NeusL0Error(f"{path}: converting it unpickles it in full, which runs any "
+                              "code the file carries; add --trust-pickle if you trust where "
+                              "it came from") from None
+    try:  # the one full unpickling, on the user's explicit request (--trust-pickle)
+        state = torch.load(path, map_location="cpu", weights_only=not trust_pickle)
+        state = to_plain(state)
+    except Exception as exc:  # noqa: BLE001 - whatever the pickle raises
+        raise NeusL0Error(f"{path}: cannot convert ({_first_line(exc)})") from None
+    problem = schema_problem(state)
+    if problem:
+        raise NeusL0Error(f"{path}: not converted: {problem}")
+    target = Path(out) if out is not None else path
+    atomic_torch_save(target, state)
+    load_checkpoint(target)
+    return target, True
 
 
 # ------------------------------------------------------------------------------------------

@@ -103,6 +103,8 @@ class RunLock:
             fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
             return False
+        except OSError as exc:  # a read-only mount, no permission
+            raise self._unwritable(exc) from None
         with os.fdopen(fd, "w", encoding="utf-8") as f:
             f.write(json.dumps(record) + "\n")
             f.flush()
@@ -150,15 +152,23 @@ class RunLock:
             f"{record.get('started', '?')}); wait for that run to end or stop it, or remove "
             f"{self.path} if no run is active")
 
+    def _unwritable(self, exc: OSError) -> NeusL0Error:
+        return NeusL0Error(f"{self.run_dir}: cannot write there ({exc.strerror or exc}); "
+                           "choose another --out")
+
     def acquire(self) -> None:
         """Take the lock, or take over a stale one (see the module docstring).
 
         Raises:
-            NeusL0Error: held by a live process (or one on another host).
+            NeusL0Error: held by a live process (or one on another host); the folder cannot
+                be written (a read-only mount, no permission).
         """
         if self.held:
             raise NeusL0Error(f"{self.run_dir}: this lock is already held by this object")
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise self._unwritable(exc) from None
         for _ in range(5):
             if self._create():
                 return

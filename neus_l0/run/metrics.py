@@ -8,7 +8,8 @@ One JSON object a line, appended as training goes:
 * a *snapshot line* for each checkpoint a snapshot mark took: ``snapshot_s``, ``iter``,
   ``elapsed``.
 
-Reading skips lines that do not parse (a line cut by a crash), and renames the keys that
+Reading skips lines that do not parse (a line cut by a crash, bytes that are not UTF-8),
+and renames the keys that
 older runs wrote (`OLD_KEYS`: their ``s`` held 1 / s, the logistic's standard deviation,
 under a name that read as the sharpness), so every run folder reads the same way.
 """
@@ -19,7 +20,7 @@ import json
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-from neus_l0.atomic import atomic_write_text
+from neus_l0.atomic import append_text, atomic_write_text
 
 #: The metrics file's name inside a run folder.
 METRICS_FILE = "metrics.jsonl"
@@ -50,13 +51,25 @@ def _parse(line: str) -> dict | None:
     return m
 
 
+def text_lines(path: Path) -> list[str | None]:
+    """The lines of a text file, each decoded as UTF-8 on its own; None for a line that is
+    not UTF-8 (so that one damaged line costs only itself)."""
+    out: list[str | None] = []
+    for raw in path.read_bytes().splitlines():
+        try:
+            out.append(raw.decode("utf-8"))
+        except UnicodeDecodeError:
+            out.append(None)
+    return out
+
+
 def read_lines(run_dir: str | Path) -> Iterator[dict]:
     """Every line of the run's metrics file that parses, in order (none if no file)."""
     path = metrics_path(run_dir)
     if not path.is_file():
         return
-    for line in path.read_text(encoding="utf-8").splitlines():
-        m = _parse(line)
+    for line in text_lines(path):
+        m = _parse(line) if line is not None else None
         if m is not None:
             yield m
 
@@ -78,16 +91,20 @@ def snapshot_lines(run_dir: str | Path) -> list[dict]:
 
 
 def append_line(run_dir: str | Path, line: dict) -> None:
-    """Append one line (a line is small, so the append is one write)."""
-    with open(metrics_path(run_dir), "a", encoding="utf-8") as f:
-        f.write(json.dumps(line) + "\n")
+    """Append one line (a line is small, so the append is one write), never through a link
+    out of the run (`neus_l0.atomic.append_text`)."""
+    append_text(metrics_path(run_dir), json.dumps(line) + "\n", within=run_dir)
 
 
-def truncate(run_dir: str | Path, iteration: int) -> None:
+def truncate(run_dir: str | Path, iteration: int) -> int:
     """Keep only the lines up to `iteration` (after a resume), dropping lines that do not
-    parse; written atomically."""
+    parse; written atomically inside the run. Returns how many lines were dropped as
+    unreadable (not UTF-8, not JSON)."""
     path = metrics_path(run_dir)
     if not path.exists():
-        return
-    keep = [m for m in read_lines(run_dir) if m.get("iter", 0) <= iteration]
-    atomic_write_text(path, "".join(json.dumps(m) + "\n" for m in keep))
+        return 0
+    lines = [ln for ln in text_lines(path) if ln is None or ln.strip()]
+    parsed = [_parse(ln) if ln is not None else None for ln in lines]
+    keep = [m for m in parsed if m is not None and m.get("iter", 0) <= iteration]
+    atomic_write_text(path, "".join(json.dumps(m) + "\n" for m in keep), within=run_dir)
+    return sum(m is None for m in parsed)

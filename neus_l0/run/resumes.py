@@ -14,8 +14,10 @@ import json
 from pathlib import Path
 from typing import Any
 
+from neus_l0.atomic import append_text
 from neus_l0.config.load import to_dict
 from neus_l0.config.schema import Config
+from neus_l0.run.metrics import text_lines
 
 #: The file a run keeps its resumes' overrides in.
 RESUMES_FILE = "resumes.jsonl"
@@ -54,7 +56,9 @@ def recorded_overrides(run_dir: str | Path) -> list[str]:
     if not path.is_file():
         return []
     out: list[str] = []
-    for line in path.read_text(encoding="utf-8").splitlines():
+    for line in text_lines(path):
+        if line is None:
+            continue
         try:
             out += list(json.loads(line).get("overrides", []))
         except (ValueError, AttributeError):
@@ -84,6 +88,7 @@ def as_overrides(cfg: Config, keys: list[str]) -> list[str]:
 
 
 def record_resume(run_dir: str | Path, record: ResumeRecord) -> None:
-    """Append one resume's record (one small line: a single write)."""
-    with open(Path(run_dir) / RESUMES_FILE, "a", encoding="utf-8") as f:
-        f.write(json.dumps(dataclasses.asdict(record)) + "\n")
+    """Append one resume's record (one small line: a single write), never through a link
+    out of the run (`neus_l0.atomic.append_text`)."""
+    append_text(Path(run_dir) / RESUMES_FILE, json.dumps(dataclasses.asdict(record)) + "\n",
+                within=run_dir)

@@ -14,15 +14,19 @@ The whole scene is written into a hidden temporary folder next to the output
 (``.NAME.XXXXXXXX.tmp``) and swapped in at the end (the old folder is renamed away, the new
 one renamed in, then the old one removed), so an interrupted run leaves the previous scene
 whole and a re-run with fewer views leaves no stale images. A folder that holds anything
-other than a synthetic scene's files is never replaced. An exception (Ctrl-C included)
-removes the temporary folder; a killed process leaves it behind.
+other than the files this tool wrote into it is never replaced: ``scene.json`` lists them
+(``files``; a scene from before that list is held to the layout's names, ``image/NNN.png``
+and so on), and any other file (a ``image/retouched_000.psd``) is named and kept. An
+exception (Ctrl-C included) removes the temporary folder; a killed process leaves it behind.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import json
 import os
+import re
 import secrets
 import shutil
 import time
@@ -383,13 +387,46 @@ def _replaceable(out: Path) -> Path:
     if names and "scene.json" not in names:
         raise NeusL0Error(f"{out}: not empty and not a synthetic scene (no scene.json); give "
                           "a new or empty folder")
-    strangers = [n for n in names if n not in SCENE_ENTRIES
-                 and not (n.startswith(".") and ".tmp" in n) and n != ".DS_Store"]
+    strangers = _not_written_here(target) if names else []
     if strangers:
-        raise NeusL0Error(f"{out}: holds {strangers[0]}, which is not part of a synthetic "
-                          "scene; replacing the scene would delete it (move it away or give "
-                          "another folder)")
+        raise NeusL0Error(f"{out}: holds {strangers[0]}, which this tool did not write; "
+                          "replacing the scene would delete it (move it away or give another "
+                          "folder)")
     return target
+
+
+#: A scene file of the layout (for scenes whose scene.json lists no ``files``).
+_LAYOUT_FILE = re.compile(r"^(?:(?:image|mask)/\d{3,}\.png|[^/]+)$")
+
+
+def _ignorable(name: str) -> bool:
+    """Temporaries of killed writers and Finder's litter (never the user's work)."""
+    return (name.startswith(".") and ".tmp" in name) or name == ".DS_Store"
+
+
+def scene_files(folder: Path) -> list[str]:
+    """Every file under `folder`, as sorted POSIX paths relative to it (what a manifest
+    lists)."""
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                  if not p.is_dir() and not _ignorable(p.name))
+
+
+def _not_written_here(target: Path) -> list[str]:
+    """The files under a synthetic scene `target` that its ``scene.json`` does not list
+    (or, without a list, that the layout does not name), sorted."""
+    try:
+        listed = json.loads((target / "scene.json").read_text(encoding="utf-8")).get("files")
+    except (OSError, ValueError, AttributeError):
+        listed = None
+    files = scene_files(target)
+    if isinstance(listed, list):
+        own = {str(f) for f in listed} | {"scene.json"}
+        strangers = [f for f in files if f not in own]
+    else:
+        strangers = [f for f in files
+                     if not (_LAYOUT_FILE.match(f) and f.split("/")[0] in SCENE_ENTRIES)]
+    folders = sorted(p.relative_to(target).as_posix() for p in target.rglob("*") if p.is_dir())
+    return sorted(strangers + [d for d in folders if d not in ("image", "mask")])
 
 
 def _sibling(target: Path, kind: str) -> Path:
@@ -533,6 +570,7 @@ def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spa
             "gt_mesh": {"vertices": int(len(gt_mesh.vertices)),
                         "faces": int(len(gt_mesh.faces)), "voxel": truth.voxel},
             "seconds": round(time.time() - t_start, 2),
+            "files": [*scene_files(tmp), "scene.json"],
         })
     return Path(out)
 

@@ -119,7 +119,8 @@ class Validation(TrainingCallback):
         with run.evaluating():
             img = validation_image(run.model, run.scene, run.cfg, view, run.iteration,
                                    bounds=run.bounds, sampler=run.setup.sampler)
-        write_png(run.run_dir / "validation" / f"{run.iteration:07d}_v{view:03d}.png", img)
+        write_png(run.run_dir / "validation" / f"{run.iteration:07d}_v{view:03d}.png", img,
+                  within=run.run_dir)
         for sink in self.sinks:
             sink(run.iteration, f"validation/v{view:03d}", img)
 

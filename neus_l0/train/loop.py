@@ -42,6 +42,7 @@ from neus_l0.run.checkpoints import (
     load_newest_checkpoint,
     restore_training,
 )
+from neus_l0.run.folder import check_run_entries
 from neus_l0.run.lock import RunLock
 from neus_l0.run.metrics import last_log_line
 from neus_l0.run.metrics import truncate as truncate_metrics
@@ -145,8 +146,9 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
         raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
     ckpt, state = found if found is not None else (None, None)
     _check_scene(scene, cfg)
-    if resume:
-        check_same_scene(run_dir, scene)
+    fingerprint = (check_same_scene(run_dir, scene, state) if resume
+                   else scene_fingerprint(scene))
+    check_run_entries(run_dir)
     cfg, line = resolve_compile(cfg, device.type, checkpoint_iteration(ckpt) if ckpt else 0,
                                 run_dir)
     if line:
@@ -158,7 +160,8 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
                    optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
                    generator=torch.Generator(device=device),
-                   occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size)
+                   occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size,
+                   fingerprint=fingerprint)
     t = cfg.train
     saves = (t.iters // t.save_every if t.save_every else 0) + 1
     kept = min(t.keep_checkpoints, saves) if t.keep_checkpoints else saves
@@ -182,23 +185,27 @@ def _write_run_files(run: RunState) -> None:
     """``config.yaml`` (a resume keeps the original and records what it changes in
     ``resumes.jsonl``: `neus_l0.run.resumes`) and ``run.json``; the metrics cut back to the
     resumed iteration."""
-    run.run_dir.mkdir(parents=True, exist_ok=True)
-    original = run.run_dir / "config.yaml"
+    run_dir = run.run_dir
+    run_dir.mkdir(parents=True, exist_ok=True)
+    original = run_dir / "config.yaml"
     if run.iteration > 0 and original.is_file():
-        before = load_config(original, recorded_overrides(run.run_dir))
+        before = load_config(original, recorded_overrides(run_dir))
         changed = changed_keys(before, run.cfg)
         if changed:
-            record_resume(run.run_dir, ResumeRecord(run.iteration,
-                                                    as_overrides(run.cfg, changed), changed))
+            record_resume(run_dir, ResumeRecord(run.iteration,
+                                                as_overrides(run.cfg, changed), changed))
     else:
-        atomic_write_text(original, dump_config(run.cfg))
+        atomic_write_text(original, dump_config(run.cfg), within=run_dir)
     scene = run.scene
-    atomic_write_json(run.run_dir / "run.json", {
+    atomic_write_json(run_dir / "run.json", {
         "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
         "n_views": scene.n_views, "height": scene.height, "width": scene.width,
-        "scene_fingerprint": scene_fingerprint(scene),
-    })
-    truncate_metrics(run.run_dir, run.iteration)
+        "scene_fingerprint": run.fingerprint,
+    }, within=run_dir)
+    dropped = truncate_metrics(run_dir, run.iteration)
+    if dropped:
+        print(f"neus-l0: {run_dir / 'metrics.jsonl'}: dropped {dropped} line(s) that are not "
+              "UTF-8 JSON (damaged)", file=sys.stderr, flush=True)
 
 
 def metrics_line(run: RunState, acc: Tensor, steps: int, last: Tensor,

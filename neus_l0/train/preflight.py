@@ -35,23 +35,45 @@ def scene_fingerprint(scene: Scene) -> str:
     return h.hexdigest()[:16]
 
 
-def check_same_scene(run_dir: Path, scene: Scene) -> None:
-    """On resume: the scene must be the one ``RUN/run.json`` recorded.
+def check_same_scene(run_dir: Path, scene: Scene, checkpoint: dict | None = None) -> str:
+    """On resume: the scene must be the one the run recorded.
+
+    The record is ``RUN/run.json``'s ``scene_fingerprint``; where that file is missing or
+    unreadable, the resumed checkpoint's own ``scene_fingerprint``. A run from before
+    fingerprints (a run.json without one) is not held to any. With no record at all the
+    scene cannot be checked, and the resume is refused rather than continued on what may be
+    another scene.
+
+    Args:
+        run_dir: the run folder; scene: the scene given; checkpoint: the checkpoint resumed.
+
+    Returns:
+        the given scene's fingerprint.
 
     Raises:
-        NeusL0Error: naming the run's scene and the one given.
+        NeusL0Error: another scene (naming the run's and the one given), or no record.
     """
+    mine = scene_fingerprint(scene)
     meta_path = run_dir / "run.json"
     try:
         meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        meta = meta if isinstance(meta, dict) else None
     except (OSError, ValueError):
-        return  # a run from before fingerprints (or a damaged record): nothing to hold to
+        meta = None
+    if meta is None:
+        known = (checkpoint or {}).get("scene_fingerprint")
+        if not known:
+            raise NeusL0Error(f"{meta_path}: missing or unreadable, and the checkpoint records "
+                              "no scene either, so the scene this run trained on cannot be "
+                              "checked; restore run.json, or train into another --out")
+        meta = {"scene_fingerprint": known}
     known = meta.get("scene_fingerprint")
-    if known and known != scene_fingerprint(scene):
+    if known and known != mine:
         raise NeusL0Error(f"{run_dir}: was trained on {meta.get('scene', 'another scene')} "
                           f"({meta.get('n_views', '?')} views), not on {scene.root} "
                           f"({scene.n_views} views): resume with the run's own scene, or "
                           "choose another --out")
+    return mine
 
 
 def checkpoint_bytes(model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> int:

@@ -71,6 +71,7 @@ class RunState:
     protect_snapshots: bool = False
     good_checkpoint: Path | None = None  # while the watchdog suspects the run
     diverged: bool = False
+    fingerprint: str = ""  # the scene's (`neus_l0.train.preflight.scene_fingerprint`)
 
     @property
     def device(self) -> torch.device:
@@ -106,6 +107,7 @@ class RunState:
             "config": to_dict(self.cfg),
             "scale_mat": np.asarray(self.scene.scale_mat).tolist(),
             "has_background": self.model.background is not None,
+            "scene_fingerprint": self.fingerprint,
         }
         if self.occupancy is not None:
             state["occupancy"] = self.occupancy.state_dict()

@@ -55,6 +55,6 @@ def validation_image(model: NeuSModel, scene: Scene, cfg: Config, view: int, ite
     return (img.numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
-def write_png(path: Path, rgb: np.ndarray) -> None:
-    """Write an (H, W, 3) uint8 RGB image atomically."""
-    atomic_write_png(path, np.ascontiguousarray(rgb[..., ::-1]))
+def write_png(path: Path, rgb: np.ndarray, within: Path | None = None) -> None:
+    """Write an (H, W, 3) uint8 RGB image atomically (inside the folder `within`)."""
+    atomic_write_png(path, np.ascontiguousarray(rgb[..., ::-1]), within)
