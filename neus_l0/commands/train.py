@@ -56,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.formats.open import open_scene
     from neus_l0.train.loop import train
 
+    if args.change_config and not args.resume:
+        raise NeusL0Error("--change-config allows a resumed run to change its config; "
+                          "without --resume it does nothing: add --resume, or drop it")
     run_dir = check_output_dir(args.out, "--out")
     if args.resume and (run_dir / "config.yaml").is_file():
         cfg = _resumed_config(run_dir, args.overrides, args.change_config)
