@@ -28,7 +28,7 @@ from torch import Tensor
 
 from neus_l0.atomic import atomic_write_json, atomic_write_text, remove_orphans
 from neus_l0.bounds.pixel_pool import reachable_pixels
-from neus_l0.bounds.static import static_bounds
+from neus_l0.bounds.static import cameras_inside_warning, static_bounds
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
@@ -118,9 +118,13 @@ class TrainResult:
 
 
 def _check_scene(scene: Scene, cfg: Config) -> None:
+    """Refuse a mask loss without masks; warn (one line) of cameras inside the unit sphere."""
     if cfg.train.mask_weight > 0 and not scene.has_masks:
         raise ConfigError(f"{scene.root}: train.mask_weight={cfg.train.mask_weight} but the "
                           "scene has no mask/ folder (use --conf womask or train.mask_weight=0)")
+    line = cameras_inside_warning(scene)
+    if line:
+        print(f"neus-l0: warning: {line}", file=sys.stderr, flush=True)
 
 
 def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
