@@ -69,8 +69,10 @@ from neus_l0.train.compile import compiled_step
 from neus_l0.train.compile_auto import resolve_compile
 from neus_l0.train.preflight import (
     check_same_scene,
+    check_step_memory,
     check_writable,
     checkpoint_bytes,
+    device_memory,
     scene_fingerprint,
 )
 from neus_l0.train.signals import StopOnSignal
@@ -153,12 +155,13 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
         check_same_scene(run_dir, scene)
     cfg, line = resolve_compile(cfg, device.type, checkpoint_iteration(ckpt) if ckpt else 0,
                                 run_dir)
-    if line:
-        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
     if cfg.train.compile:
         use_persistent_cache()  # before the optimiser imports torch._dynamo (the CLI did it too)
     scene = scene.to(device)
     model = make_model(cfg, device)
+    check_step_memory(model, cfg, device_memory(device))
+    if line:
+        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
     run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
                    optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
                    generator=torch.Generator(device=device),
