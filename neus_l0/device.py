@@ -1,7 +1,10 @@
-"""The torch device a command runs on, how many CPU threads it uses, and waiting for it."""
+"""The torch device a command runs on, how many CPU threads it uses, waiting for it, and the
+host memory available now."""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -72,3 +75,44 @@ def use_cpu_threads(requested: int | None, device: str) -> int | None:
     threads = free_cpu_threads(requested)
     torch.set_num_threads(threads)
     return threads
+
+
+def _cgroup_available() -> int | None:
+    """Memory left under a cgroup v2 or v1 limit (containers), or None without a limit."""
+    pairs = [("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
+             ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
+              "/sys/fs/cgroup/memory/memory.usage_in_bytes")]
+    for limit_file, usage_file in pairs:
+        try:
+            limit = Path(limit_file).read_text().strip()
+            usage = int(Path(usage_file).read_text().strip())
+        except (OSError, ValueError):
+            continue
+        if limit.isdigit() and int(limit) < 2**60:
+            return max(int(limit) - usage, 0)
+    return None
+
+
+def available_memory() -> int | None:
+    """Bytes of host memory available now, or None where it cannot be told.
+
+    Linux: ``MemAvailable`` of /proc/meminfo, capped by a cgroup limit; elsewhere
+    ``os.sysconf`` (free physical pages), where the platform has it.
+    """
+    found = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                found = int(line.split()[1]) * 1024
+                break
+    except (OSError, ValueError, IndexError):
+        found = None
+    if found is None:
+        try:
+            found = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        except (AttributeError, ValueError, OSError):
+            found = None
+    cgroup = _cgroup_available()
+    if cgroup is not None:
+        found = cgroup if found is None else min(found, cgroup)
+    return found

@@ -12,12 +12,12 @@ import torch
 
 from neus_l0.cli import main
 from neus_l0.config.load import load_config
+from neus_l0.device import available_memory
 from neus_l0.errors import NeusL0Error, SceneError
 from neus_l0.formats.neus import load_scene, validate_scene
 from neus_l0.mesh.memory import (
     BYTES_PER_FACE,
     EVAL_BYTES_PER_POINT,
-    available_memory,
     extraction_bytes,
     largest_resolution,
     mesh_faces,

@@ -77,6 +77,42 @@ def cameras_inside(scene: Scene) -> list[int]:
     return (scene.c2w[:, :3, 3].norm(dim=-1) <= 1.0).nonzero().flatten().tolist()
 
 
+def cameras_inside_warning(scene: Scene) -> str | None:
+    """One line when cameras lie inside the unit sphere (which must hold the object and leave
+    every camera outside: rays would start inside the volume the SDF models), else None."""
+    inside = cameras_inside(scene)
+    if not inside:
+        return None
+    shown = inside if len(inside) <= 8 else inside[:8] + ["..."]
+    return (f"{scene.root}: the cameras of {len(inside)} of {scene.n_views} views "
+            f"({', '.join(map(str, shown))}) are inside the unit sphere, which should hold "
+            "the object only: the sphere (scale_mat) is likely too large; check it with "
+            "`neus-l0 inspect`")
+
+
+def train_verdict(scene: Scene, hull: VisualHull | None) -> dict:
+    """What `neus-l0 train` would say about the scene's fit to its unit sphere.
+
+    Args:
+        hull: the scene's visual hull carved as training carves it (``render.hull``'s default
+            resolution and margin), or None when the scene has no masks.
+
+    Returns:
+        ``{"refuses": LINE or None, "warnings": [LINE, ...], "shell": FRACTION or None}``:
+        `check_fit`'s refusal, `cameras_inside_warning`, and the share of the sphere's outer
+        shell the hull fills.
+    """
+    refuses = None
+    if hull is not None:
+        try:
+            check_fit(hull, scene)
+        except SceneError as exc:
+            refuses = str(exc)
+    warning = cameras_inside_warning(scene)
+    return {"refuses": refuses, "warnings": [warning] if warning else [],
+            "shell": None if hull is None else shell_fraction(hull)}
+
+
 def check_fit(hull: VisualHull, scene: Scene) -> None:
     """Refuse a scene whose object the unit sphere cuts (`CUT_SHELL`), before training.
 
@@ -97,9 +133,12 @@ def check_fit(hull: VisualHull, scene: Scene) -> None:
             f"{scene.root}: the cameras of views {inside} are inside the unit sphere, which "
             "must hold the object and leave the cameras outside: the scale_mat_i are of "
             "another scale than the world_mat_i; check them with `neus-l0 inspect`")
+    method = scene.info.get("sphere", {}).get("method")
+    what = ({"sphere.json": "the radius in sphere.json"}.get(method, "the sphere found for "
+            "it: give one in sphere.json") if method else "the scale of every scale_mat_i")
     raise SceneError(
         f"{scene.root}: the object does not fit its unit sphere: the masks' visual hull "
         f"fills {frac:.0%} of the sphere's outer shell (an object inside fills a few %), so "
-        f"training would clip the mesh; enlarge the sphere (the scale of every scale_mat_i), "
+        f"training would clip the mesh; enlarge the sphere ({what}), "
         "e.g. by 1.5x, and check with `neus-l0 inspect --hull`, or set "
         "render.hull.enabled=false to train anyway")

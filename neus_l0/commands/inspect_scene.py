@@ -17,6 +17,8 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                     "masks come from and their coverage, the object sphere (world units; for "
                     "transforms.json, how it was found, with sphere_preview.png) and the "
                     "camera distances (normalised units, where the object sphere is the unit "
+                    "sphere), and what `train` would refuse or warn of (the object cut by its "
+                    "sphere, judged from the visual hull training carves; cameras inside the "
                     "sphere).")
     p.add_argument("data", help="scene folder (or a transforms JSON file)")
     p.add_argument("--split", choices=("train", "val", "test"), default="train",
@@ -69,6 +71,7 @@ def format_summary(info: dict) -> str:
     if info.get("undistorted"):
         lines.append(f"cameras      {info['undistorted']}")
     lines += [f"warning      {w}" for w in info["warnings"]]
+    lines += _train_lines(info.get("train"))
     if "hull" in info:
         h = info["hull"]
         n_carve = sum(s in ("ok", "full") for s in h["status"])
@@ -77,6 +80,33 @@ def format_summary(info: dict) -> str:
                      f"{len(h['status'])} views carve, {h['seconds']:.1f} s) -> {h['mesh']}")
         lines += [f"warning      {w}" for w in h["warnings"]]
     return "\n".join(lines)
+
+
+def _train_lines(verdict: dict | None) -> list[str]:
+    """The summary's lines for `neus_l0.bounds.static.train_verdict`."""
+    if verdict is None:
+        return []
+    if verdict["refuses"]:
+        return [f"warning      train would refuse this scene: {verdict['refuses']}"]
+    lines = [f"warning      train would warn: {w}" for w in verdict["warnings"]]
+    if verdict["shell"] is not None:
+        lines.append(f"train        the object fits its unit sphere (the visual hull fills "
+                     f"{verdict['shell']:.1%} of the sphere's outer shell)")
+    return lines
+
+
+def _train_check(args: argparse.Namespace, scene, hull) -> dict:
+    """`train_verdict` with the hull training would carve (the one --hull carved when it used
+    the same settings)."""
+    from neus_l0.bounds.hull import hull_from_scene
+    from neus_l0.bounds.static import train_verdict
+    from neus_l0.config.schema import HullConfig
+
+    h = HullConfig()
+    if scene.has_masks and (hull is None or (hull.resolution, hull.margin_px)
+                            != (h.resolution, h.margin_px)):
+        hull = hull_from_scene(scene, h.resolution, h.margin_px)
+    return train_verdict(scene, hull if scene.has_masks else None)
 
 
 def _hull(args: argparse.Namespace, scene) -> dict:
@@ -94,7 +124,8 @@ def _hull(args: argparse.Namespace, scene) -> dict:
                           f"there is no visual hull")
     hull = hull_from_scene(scene, resolution=R, margin_px=margin)
     export_mesh(hull.to_mesh(scene.scale_mat), args.hull)
-    return dict(hull.report.to_dict(), mesh=str(args.hull), resolution=R, margin_px=margin)
+    return dict(hull.report.to_dict(), mesh=str(args.hull), resolution=R, margin_px=margin,
+                carved=hull)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -106,7 +137,10 @@ def run(args: argparse.Namespace) -> int:
         raise NeusL0Error("--hull-resolution and --hull-margin need --hull OUT.ply")
     scene = open_scene(args.data, split=args.split)
     info = summarise(scene)
+    carved = None
     if args.hull is not None:
         info["hull"] = _hull(args, scene)
+        carved = info["hull"].pop("carved")
+    info["train"] = _train_check(args, scene, carved)
     print(json.dumps(info, indent=2) if args.json else format_summary(info))
     return 0

@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from neus_l0.commands._paths import check_not_input, check_output_dir
-    from neus_l0.mesh.memory import available_memory
+    from neus_l0.device import available_memory
     from neus_l0.synthetic.scene import check_render_memory, check_scene_args, make_scene
 
     check_not_input(args.out, "OUT", [Path(args.scene)])

@@ -57,6 +57,9 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.run.folder import RUN_LEFTOVERS, RUN_RECORDS
     from neus_l0.train.loop import train
 
+    if args.change_config and not args.resume:
+        raise NeusL0Error("--change-config allows a resumed run to change its config; "
+                          "without --resume it does nothing: add --resume, or drop it")
     check_not_input(args.out, "--out", [args.data])
     run_dir = check_output_dir(args.out, "--out", RUN_RECORDS, RUN_LEFTOVERS, "a run folder")
     if args.resume and (run_dir / "config.yaml").is_file():

@@ -157,11 +157,20 @@ def _check_encoding(obj: EncodingConfig, bad: Callable[[str, str], ConfigError])
 
 def _check_skips(obj: SDFConfig | BackgroundConfig, bad: Callable[[str, str], ConfigError]
                  ) -> None:
-    # an index past the last layer is no skip at all (the networks ignore it), so a smaller
-    # `layers` need not touch `skip`; a negative one is a mistake
+    # the SDF concatenates the input before its linear layer i (1 .. layers), the background
+    # after its layer i (0 .. layers - 2). The default skip past a smaller `layers` is no skip
+    # at all (the networks ignore it), so lowering `layers` need not touch `skip`; any other
+    # index past the last would be silently ignored, and one below the first fails to build
     wrong = [i for i in obj.skip if i < 0]
     if wrong:
         raise bad("skip", f"{wrong}: layer indices must be >= 0")
+    lo, hi = (1, obj.layers) if isinstance(obj, SDFConfig) else (0, obj.layers - 2)
+    default = list(obj.skip) == type(obj)().skip
+    wrong = [i for i in obj.skip if i < lo or (i > hi and not default)]
+    if wrong:
+        span = f"indices {lo} .. {hi}, or [] for none" if hi >= lo else "use []"
+        raise bad("skip", f"{wrong}: no such layer in a network of {obj.layers} layers "
+                  f"({span})")
 
 
 def _check_render(obj: RenderConfig, bad: Callable[[str, str], ConfigError]) -> None:

@@ -180,8 +180,9 @@ def parse_overrides(items: list[str]) -> dict:
             raise ConfigError(f"override '{item}' has an empty key")
         try:
             value = yaml.safe_load(text) if text.strip() else ""
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"override '{item}': value is not valid YAML ({exc})") from None
+        except (yaml.YAMLError, RecursionError) as exc:
+            raise ConfigError(f"override '{item}': value is not valid YAML "
+                              f"({yaml_problem(exc)})") from None
         node = out
         parts = key.split(".")
         for part in parts[:-1]:
@@ -223,12 +224,33 @@ def _merge(base: dict, extra: dict) -> dict:
     return out
 
 
+def yaml_problem(exc: BaseException) -> str:
+    """One line for a YAML (or decoding) error: where (``line L, column C``) and what, without
+    the parser's quoted context lines."""
+    if isinstance(exc, yaml.MarkedYAMLError):
+        mark = exc.problem_mark or exc.context_mark
+        what = " ".join(str(exc.problem or exc.context or "malformed YAML").split())
+        if isinstance(exc, yaml.constructor.ConstructorError) and "tag" in what:
+            what += " (only plain YAML is read: no Python tags)"
+        if mark is not None:
+            return f"line {mark.line + 1}, column {mark.column + 1}: {what}"
+        return what
+    if isinstance(exc, yaml.reader.ReaderError):
+        return f"byte {exc.position}: {exc.reason} (not a text file?)"
+    if isinstance(exc, UnicodeDecodeError):
+        return f"byte {exc.start}: not UTF-8 text"
+    if isinstance(exc, RecursionError):
+        return "nested too deeply"
+    return " ".join(str(getattr(exc, "strerror", None) or exc).split())
+
+
 def read_yaml(path: Path) -> dict:
-    """Read a YAML mapping (empty file: {}), raising `ConfigError` on malformed files."""
+    """Read a YAML mapping (empty file: {}), raising `ConfigError` on malformed files (one
+    line: the file, the line and the problem, `yaml_problem`)."""
     try:
         data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: cannot read config ({exc})") from None
+    except (OSError, ValueError, RecursionError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{path}: cannot read config: {yaml_problem(exc)}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

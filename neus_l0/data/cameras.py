@@ -37,14 +37,20 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         P: (3, 4) or (4, 4) projection matrix; only the top 3x4 block is used.
 
     Returns:
-        K: (3, 3) intrinsics normalised so that K[2, 2] == 1.
+        K: (3, 3) intrinsics normalised so that K[2, 2] == 1, with positive focal lengths
+            (P and -P are the same camera: the sign is taken so that points in front of the
+            camera have positive depth).
         c2w: (4, 4) camera-to-world pose in the frame P takes points from
             (rotation R^T, centre t[:3] / t[3] from ``cv2.decomposeProjectionMatrix``).
     """
     P = np.asarray(P, dtype=np.float64)[:3, :4]
     P = P / np.abs(P).max()  # a projection is defined up to scale: keep its numbers near 1
+    if np.linalg.det(P[:, :3]) < 0:
+        P = -P  # the same camera; with det > 0, points in front have positive depth
     K, R, t = cv2.decomposeProjectionMatrix(P)[:3]
     K = K / K[2, 2]
+    flip = np.diag(np.where(np.diag(K) < 0, -1.0, 1.0))  # RQ's sign choice: K R = (K D)(D R)
+    K, R = K @ flip, flip @ R
     c2w = np.eye(4)
     c2w[:3, :3] = R.T
     c2w[:3, 3] = (t[:3] / t[3])[:, 0]

@@ -31,6 +31,11 @@ downscale; masks go through the same map. Fisheye and other models, and a nonzer
 (``OPENCV``'s eighth-order term), are refused with a `SceneError` naming the file and the
 model.
 
+Checks (each a `SceneError` naming the file and the frame): a field of view in (0, pi), the
+principal point inside the image, a pose's bottom row ``[0, 0, 0, 1]`` and its 3x3 block a
+rotation, one pose per image file (two frames of one ``file_path`` must agree), JSON that
+parses (also when nested too deeply).
+
 Masks: ``mask_path`` when the frames give it (white = object), else the images' alpha
 (``alpha > 0.5``, colour composited over black) when they carry it, else none.
 """
@@ -175,6 +180,8 @@ def _load_json(path: Path) -> dict:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise SceneError(f"{path}: not a readable JSON file ({exc})") from None
+    except RecursionError:
+        raise SceneError(f"{path}: not a readable JSON file (nested too deeply)") from None
     if not isinstance(data, dict):
         raise SceneError(f"{path}: expected a JSON object with 'frames'")
     return data
@@ -200,6 +207,19 @@ def _number(path: Path, where: str, key: str, value) -> float:
     return x
 
 
+def _focal(path: Path, where: str, key: str, angle: float, side: int) -> float:
+    """The focal length, in pixels, of a field of view `angle` (radians) across `side`
+    pixels.
+
+    Raises:
+        SceneError: an angle outside (0, pi).
+    """
+    if not 0.0 < angle < math.pi:
+        raise SceneError(f"{path}: {where}'{key}' must be a field of view in (0, pi) "
+                         f"radians, got {angle:g}")
+    return 0.5 * side / math.tan(0.5 * angle)
+
+
 def _camera(path: Path, top: dict, frame: dict, i: int,
             size_of) -> Camera:
     """The camera of frame `i`: the frame's own keys over the file's (see the module)."""
@@ -218,13 +238,13 @@ def _camera(path: Path, top: dict, frame: dict, i: int,
     if "fl_x" in merged:
         fx = num("fl_x")
     elif "camera_angle_x" in merged:
-        fx = 0.5 * w / math.tan(0.5 * num("camera_angle_x"))
+        fx = _focal(path, where, "camera_angle_x", num("camera_angle_x"), w)
     else:
         raise SceneError(f"{path}: {where}no focal length ('fl_x' or 'camera_angle_x')")
     if "fl_y" in merged:
         fy = num("fl_y")
     elif "camera_angle_y" in merged:
-        fy = 0.5 * h / math.tan(0.5 * num("camera_angle_y"))
+        fy = _focal(path, where, "camera_angle_y", num("camera_angle_y"), h)
     else:
         fy = fx
     cx = num("cx") if "cx" in merged else 0.5 * w
@@ -232,6 +252,9 @@ def _camera(path: Path, top: dict, frame: dict, i: int,
     if not (fx > 0 and fy > 0 and w > 0 and h > 0):
         raise SceneError(f"{path}: {where}focal lengths and size must be > 0 "
                          f"(fl_x {fx:g}, fl_y {fy:g}, w {w}, h {h})")
+    if not (0.0 <= cx <= w and 0.0 <= cy <= h):
+        raise SceneError(f"{path}: frame {i}: principal point (cx {cx:g}, cy {cy:g}) lies "
+                         f"outside its {w}x{h} image (pixels, from the top-left corner)")
     coef = {k: num(k) if k in merged else 0.0 for k in ("k1", "k2", "k3", "k4", "p1", "p2")}
     distorted = any(v != 0.0 for v in coef.values())
     model = str(merged.get("camera_model", "OPENCV" if distorted else "PINHOLE")).upper()
@@ -267,6 +290,9 @@ def _pose(path: Path, frame: dict, i: int) -> np.ndarray:
     if m.shape not in ((4, 4), (3, 4)) or not np.isfinite(m).all():
         raise SceneError(f"{path}: frame {i}: 'transform_matrix' must be a finite 4x4 "
                          f"(or 3x4) matrix")
+    if m.shape == (4, 4) and np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max() > 1e-6:
+        raise SceneError(f"{path}: frame {i}: 'transform_matrix' bottom row must be "
+                         f"[0, 0, 0, 1], got {m[3].tolist()}")
     c2w = np.eye(4)
     c2w[:3] = m[:3]
     R = c2w[:3, :3]
@@ -276,6 +302,24 @@ def _pose(path: Path, frame: dict, i: int) -> np.ndarray:
     u, _, vt = np.linalg.svd(R)
     c2w[:3, :3] = u @ vt
     return c2w @ OPENGL_TO_OPENCV
+
+
+def _check_repeats(path: Path, image_paths: list[Path], c2w: np.ndarray) -> None:
+    """One image in two frames must have one pose.
+
+    Args:
+        image_paths: (V,) the frames' image files; c2w: (V, 4, 4) their poses.
+
+    Raises:
+        SceneError: naming both frames and the image.
+    """
+    first: dict[Path, int] = {}
+    for i, p in enumerate(image_paths):
+        j = first.setdefault(p.resolve(), i)
+        if j != i and not np.allclose(c2w[i], c2w[j], rtol=0.0,
+                                      atol=1e-6 * max(1.0, np.abs(c2w[j]).max())):
+            raise SceneError(f"{path}: frames {j} and {i} both show '{p.name}' but with "
+                             f"different poses: one image has one camera")
 
 
 def _find_file(path: Path, frame: dict, i: int, key: str) -> Path:
@@ -361,6 +405,7 @@ def read_transforms(root: str | Path, split: str = "train") -> TransformsScene:
 
     cameras = [_camera(path, data, f, i, size_of) for i, f in enumerate(frames)]
     c2w = np.stack([_pose(path, f, i) for i, f in enumerate(frames)])
+    _check_repeats(path, image_paths, c2w)
     points = None
     if isinstance(data.get("ply_file_path"), str):
         points = _read_ply_points(path, data["ply_file_path"])

@@ -22,9 +22,8 @@ The estimate (bytes) has two parts:
 from __future__ import annotations
 
 import math
-import os
-from pathlib import Path
 
+from neus_l0.device import available_memory
 from neus_l0.errors import NeusL0Error
 
 FACES_PER_AREA = 3.0
@@ -77,47 +76,6 @@ def extraction_bytes(method: str, resolution: int, block: int = 8, bound: float 
         raise NeusL0Error(f"mesh method '{method}': use dense or sparse")
     batch = EVAL_BYTES_PER_POINT * min(int(chunk), R**3)
     return int(grid + batch + BYTES_PER_FACE * mesh_faces(R, bound, area))
-
-
-def _cgroup_available() -> int | None:
-    """Memory left under a cgroup v2 or v1 limit (containers), or None without a limit."""
-    pairs = [("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory.current"),
-             ("/sys/fs/cgroup/memory/memory.limit_in_bytes",
-              "/sys/fs/cgroup/memory/memory.usage_in_bytes")]
-    for limit_file, usage_file in pairs:
-        try:
-            limit = Path(limit_file).read_text().strip()
-            usage = int(Path(usage_file).read_text().strip())
-        except (OSError, ValueError):
-            continue
-        if limit.isdigit() and int(limit) < 2**60:
-            return max(int(limit) - usage, 0)
-    return None
-
-
-def available_memory() -> int | None:
-    """Bytes of host memory available now, or None where it cannot be told.
-
-    Linux: ``MemAvailable`` of /proc/meminfo, capped by a cgroup limit; elsewhere
-    ``os.sysconf`` (free physical pages), where the platform has it.
-    """
-    found = None
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                found = int(line.split()[1]) * 1024
-                break
-    except (OSError, ValueError, IndexError):
-        found = None
-    if found is None:
-        try:
-            found = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-        except (AttributeError, ValueError, OSError):
-            found = None
-    cgroup = _cgroup_available()
-    if cgroup is not None:
-        found = cgroup if found is None else min(found, cgroup)
-    return found
 
 
 def largest_resolution(method: str, budget: int, block: int = 8, bound: float = 1.0,

@@ -113,6 +113,11 @@ class RenderOptions:
             raise NeusL0Error(f"--holdout {self.holdout}: must be 0 (none) or a positive K")
         if self.test_views is not None and self.holdout:
             raise NeusL0Error("--test-views and --holdout: give one of them, not both")
+        if (self.test_views is not None or self.holdout) and self.views == "orbit":
+            flag = "--test-views" if self.test_views is not None else "--holdout"
+            raise NeusL0Error(f"{flag} chooses held-out views, but --views orbit renders "
+                              "none of the scene's views: add --views test (or train: the "
+                              "others)")
         if self.test_views is not None and any(v < 0 for v in self.test_views):
             raise NeusL0Error(f"--test-views {self.test_views}: view indices must be >= 0")
 

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from neus_l0.atomic import atomic_write_json, atomic_write_text, remove_orphans
 from neus_l0.bounds.pixel_pool import reachable_pixels
-from neus_l0.bounds.static import static_bounds
+from neus_l0.bounds.static import cameras_inside_warning, static_bounds
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
@@ -70,8 +70,10 @@ from neus_l0.train.compile import compiled_step
 from neus_l0.train.compile_auto import resolve_compile
 from neus_l0.train.preflight import (
     check_same_scene,
+    check_step_memory,
     check_writable,
     checkpoint_bytes,
+    device_memory,
     scene_fingerprint,
 )
 from neus_l0.train.signals import StopOnSignal
@@ -119,9 +121,13 @@ class TrainResult:
 
 
 def _check_scene(scene: Scene, cfg: Config) -> None:
+    """Refuse a mask loss without masks; warn (one line) of cameras inside the unit sphere."""
     if cfg.train.mask_weight > 0 and not scene.has_masks:
         raise ConfigError(f"{scene.root}: train.mask_weight={cfg.train.mask_weight} but the "
                           "scene has no mask/ folder (use --conf womask or train.mask_weight=0)")
+    line = cameras_inside_warning(scene)
+    if line:
+        print(f"neus-l0: warning: {line}", file=sys.stderr, flush=True)
 
 
 def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
@@ -151,12 +157,13 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     check_run_entries(run_dir)
     cfg, line = resolve_compile(cfg, device.type, checkpoint_iteration(ckpt) if ckpt else 0,
                                 run_dir)
-    if line:
-        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
     if cfg.train.compile:
         use_persistent_cache()  # before the optimiser imports torch._dynamo (the CLI did it too)
     scene = scene.to(device)
     model = make_model(cfg, device)
+    check_step_memory(model, cfg, device_memory(device))
+    if line:
+        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
     run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
                    optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
                    generator=torch.Generator(device=device),

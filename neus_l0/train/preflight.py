@@ -1,5 +1,13 @@
 """Checks a run passes before its first step: the folder can be written and holds room for
-the checkpoints, and a resumed run continues on the scene it started on.
+the checkpoints, a resumed run continues on the scene it started on, and one training step
+fits in memory.
+
+The step's memory (`step_bytes`): every sample of every ray keeps its activations for the
+backward pass (and the SDF's gradient, which the eikonal loss differentiates again), so the
+peak grows as rays x samples x network width: ``BYTES_PER_ACTIVATION`` x rays x (surface
+samples x the SDF and colour networks' width + outside samples x the background's) plus
+``BYTES_PER_SAMPLE`` x rays x samples (what every sample costs besides the networks), where a
+width is the sum of a network's layer outputs and its input encoding (per sample, floats).
 
 (The scene's own files are checked as it loads, `neus_l0.data.scene`; the config's numbers
 as it is built, `neus_l0.config.checks`; whether the object fits the unit sphere when the
@@ -22,6 +30,15 @@ from neus_l0.errors import NeusL0Error
 
 #: Room left on the disk beyond the checkpoints (metrics, validation images, the hull).
 DISK_SLACK = 64 * 2**20
+#: Peak bytes of a training step per ray, sample and float of network width (fitted to the
+#: peak memory of eager CPU steps; docs/BENCHMARKS.md)...
+BYTES_PER_ACTIVATION = 12
+#: ...plus these per ray and sample, whatever the networks (the sampler, the compositing,
+#: the losses).
+BYTES_PER_SAMPLE = 3500
+#: The memory a step may take of what is available (the rest: the scene, the model, the
+#: optimiser, the allocator's slack).
+STEP_SHARE = 0.8
 
 
 def scene_fingerprint(scene: Scene) -> str:
@@ -102,3 +119,64 @@ def check_writable(run_dir: Path, need: int) -> None:
         raise NeusL0Error(f"{run_dir}: {free / 2**20:.0f} MB free on its disk, but the "
                           f"checkpoints need about {(need + DISK_SLACK) / 2**20:.0f} MB; free "
                           "some space, lower train.keep_checkpoints or choose another --out")
+
+
+def network_width(net: torch.nn.Module | None) -> int:
+    """Floats a network keeps per input point: its layers' outputs and its encodings'."""
+    if net is None:
+        return 0
+    width = sum(m.out_features for m in net.modules() if isinstance(m, torch.nn.Linear))
+    return width + sum(int(getattr(m, "out_dim", 0)) for m in net.modules()
+                       if m is not net and hasattr(m, "raw_dims"))
+
+
+def step_bytes(model: torch.nn.Module, cfg, rays: int) -> int:
+    """About the peak memory of one training step of `rays` rays (module docstring)."""
+    r = cfg.render
+    surface = r.n_samples + (r.n_importance if r.up_sample_steps else 0)
+    floats = (surface * (network_width(model.sdf) + network_width(model.color))
+              + r.n_outside * network_width(getattr(model, "background", None)))
+    per_ray = BYTES_PER_ACTIVATION * floats + BYTES_PER_SAMPLE * (surface + r.n_outside)
+    return int(rays * per_ray)
+
+
+def max_rays(cfg) -> int:
+    """The most rays a step draws: `train.batch_size`, or 8x that under a sample budget."""
+    t = cfg.train
+    return 8 * t.batch_size if t.sample_budget else t.batch_size
+
+
+def device_memory(device: torch.device) -> int | None:
+    """Bytes available for a step on `device`: free GPU memory, or the host's (None: not
+    known)."""
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return int(free)
+    from neus_l0.device import available_memory
+
+    return available_memory()
+
+
+def check_step_memory(model: torch.nn.Module, cfg, available: int | None) -> None:
+    """One training step must fit in `STEP_SHARE` of `available` bytes (None: no check).
+
+    Raises:
+        NeusL0Error: naming the estimate, the memory available and the largest batch that
+            fits (or, when not even one ray does, the samples to lower).
+    """
+    rays = max_rays(cfg)
+    need = step_bytes(model, cfg, rays)
+    if available is None or need <= STEP_SHARE * available:
+        return
+    per_ray = max(step_bytes(model, cfg, 1), 1)
+    fit = int(STEP_SHARE * available // per_ray) // (8 if cfg.train.sample_budget else 1)
+    r = cfg.render
+    samples = r.n_samples + (r.n_importance if r.up_sample_steps else 0) + r.n_outside
+    how = (f"the largest batch that fits is about train.batch_size={fit}" if fit >= 1 else
+           f"not even one ray fits: lower render.n_samples ({r.n_samples}), "
+           f"render.n_importance ({r.n_importance}) or render.n_outside ({r.n_outside})")
+    budget = ", x8 under train.sample_budget" if cfg.train.sample_budget else ""
+    raise NeusL0Error(f"train.batch_size={cfg.train.batch_size}: one training step of "
+                      f"{rays} rays{budget} x {samples} samples (render.n_samples + "
+                      f"n_importance + n_outside) needs about {need / 2**30:.3g} GiB, "
+                      f"{available / 2**30:.3g} GiB is available; {how}")
