@@ -39,5 +39,6 @@ def test_garbage_run_config_is_one_line(capsys, tmp_path, tiny_scene):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     (run / "config.yaml").write_bytes(bytes(range(256)) * 4)
+    (run / "run.json").write_text("{}\n")  # a run folder of this tool, its config garbage
     one_error(capsys, ["train", str(tiny_scene), "--out", str(run), "--resume",
                        "--threads", "1"], str(run / "config.yaml"), "not UTF-8")
