@@ -13,15 +13,6 @@ from neus_l0.errors import SceneError
 from neus_l0.formats.neus import load_scene
 
 
-@pytest.fixture()
-def scene_copy(tiny_scene, tmp_path):
-    root = tmp_path / "scene"
-    for name in ("image", "mask"):
-        shutil.copytree(tiny_scene / name, root / name)
-    shutil.copy(tiny_scene / "cameras_sphere.npz", root)
-    return root
-
-
 def _edit_cameras(root, **changes):
     cams = dict(np.load(root / "cameras_sphere.npz"))
     for k, v in changes.items():
