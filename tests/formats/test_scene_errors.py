@@ -101,7 +101,7 @@ def test_wrong_shape_camera(scene_copy):
 
 
 def test_all_empty_mask(scene_copy):
-    # one empty mask is true data (tests/test_faults.py); all of them is an error
+    # one empty mask is true data (tests/cli/test_faults.py); all of them is an error
     for p in (scene_copy / "mask").iterdir():
         cv2.imwrite(str(p), np.full((48, 64, 3), 100, np.uint8))
     _expect(scene_copy, "000.png", "every mask is empty")
