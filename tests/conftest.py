@@ -1,8 +1,15 @@
-"""Shared fixtures: the demo scene on disk, an in-memory sphere scene, an analytic sphere
-model and the small network overrides the training tests run with."""
+"""Shared fixtures: the demo scenes on disk (and copies to break), a small trained run, an
+in-memory sphere scene, an analytic sphere model, the small network overrides the training
+tests run with, the command-line helpers the bad-input tests share, and the data in
+``../shared`` (``NEUS_L0_SHARED``)."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +17,7 @@ import pytest
 import torch
 from torch import nn
 
+from neus_l0.cli import main
 from neus_l0.config.schema import ColorConfig, VarianceConfig
 from neus_l0.data.rays import pixel_grid, pixel_rays
 from neus_l0.data.scene import Scene
@@ -29,6 +37,63 @@ def tiny_scene(tmp_path_factory):
     out = tmp_path_factory.mktemp("tiny_scene") / "demo"
     return make_scene("demo", out, views=8, width=64, height=48, seed=0, gt_voxel=4.0,
                       point_spacing=2.0, progress=False)
+
+
+@pytest.fixture(scope="session")
+def scene96(tmp_path_factory) -> Path:
+    """The demo object, 8 views at 96x72 (the unit sphere's fit is judged from 72 pixels up):
+    its folder Path. Built once per test session; treat it as read-only."""
+    from neus_l0.synthetic.scene import make_scene
+
+    out = tmp_path_factory.mktemp("scene96") / "demo"
+    return make_scene("demo", out, views=8, width=96, height=72, seed=0, gt_voxel=4.0,
+                      point_spacing=2.0, progress=False)
+
+
+def _copy_views(scene: Path, root: Path) -> Path:
+    """Copy `scene`'s views (image/, mask/, cameras_sphere.npz, scene.json) to `root`."""
+    for name in ("image", "mask"):
+        shutil.copytree(scene / name, root / name)
+    for name in ("cameras_sphere.npz", "scene.json"):
+        shutil.copy(scene / name, root)
+    return root
+
+
+@pytest.fixture
+def scene_copy(tiny_scene, tmp_path) -> Path:
+    """A copy of `tiny_scene`'s views (image/, mask/, cameras_sphere.npz, scene.json) to
+    break."""
+    return _copy_views(tiny_scene, tmp_path / "scene")
+
+
+@pytest.fixture
+def scene96_copy(scene96, tmp_path) -> Path:
+    """A copy of `scene96`'s views, as `scene_copy`, to break."""
+    return _copy_views(scene96, tmp_path / "scene")
+
+
+# ------------------------------------------------------------------------------------------
+# Data outside the repository: ../shared (or $NEUS_L0_SHARED), on development machines.
+
+ROOT = Path(__file__).resolve().parent.parent
+SHARED = {"bunny": "meshes/bunny.obj", "dtu_scan65": "data/dtu_scan65"}
+
+
+@pytest.fixture(scope="session")
+def shared_data():
+    """``shared_data(name) -> Path``: the bunny (``"bunny"``, meshes/bunny.obj) or the DTU
+    scan (``"dtu_scan65"``, data/dtu_scan65) in the folder ``$NEUS_L0_SHARED`` names
+    (default ``../shared``; relative to the repository's root). A test that asks for one that
+    is not there is skipped."""
+    folder = ROOT / os.environ.get("NEUS_L0_SHARED", "../shared")
+
+    def find(name: str) -> Path:
+        path = (folder / SHARED[name]).resolve()
+        if not path.exists():
+            pytest.skip(f"{path} is not here (set NEUS_L0_SHARED to the shared data folder)")
+        return path
+
+    return find
 
 
 # ------------------------------------------------------------------------------------------
@@ -55,6 +120,176 @@ def small():
 def small_overrides():
     """`small` as a tuple, for fixtures wider than one test (module or session scope)."""
     return SMALL
+
+
+@pytest.fixture
+def train_cli(small):
+    """``train_cli(scene, run, *extra)``: the argv of a small, quiet training on one thread."""
+    def argv(scene: Path, run: Path, *extra: str) -> list[str]:
+        return ["train", str(scene), "--conf", "demo", "--out", str(run), "--quiet",
+                "--threads", "1", *small, *extra]
+    return argv
+
+
+@pytest.fixture(scope="session")
+def resume_cli():
+    """``resume_cli(scene, run, *extra)``: the argv of ``train --resume`` (config.yaml is the
+    base; `extra` overrides)."""
+    def argv(scene: Path, run: Path, *extra: str) -> list[str]:
+        return ["train", str(scene), "--out", str(run), "--resume", "--quiet", "--threads",
+                "1", *extra]
+    return argv
+
+
+def _checkpoint_names(run: Path) -> list[str]:
+    folder = run / "checkpoints"
+    return sorted(p.name for p in folder.glob("ckpt_*")) if folder.is_dir() else []
+
+
+@pytest.fixture(scope="session")
+def checkpoint_names():
+    """``checkpoint_names(run) -> list[str]``: the names of the run's checkpoint files (none
+    when it has no checkpoints folder)."""
+    return _checkpoint_names
+
+
+@pytest.fixture(scope="session")
+def trained96(scene96, small_overrides, tmp_path_factory) -> Path:
+    """A run of 4 iterations on `scene96` (checkpoints at 2 and 4), trained by the CLI under
+    umask 022 (read-only: tests copy it with `run_copy`)."""
+    run = tmp_path_factory.mktemp("trained96") / "run"
+    old = os.umask(0o022)
+    try:
+        assert main(["train", str(scene96), "--conf", "demo", "--out", str(run), "--quiet",
+                     "--threads", "1", *small_overrides, "train.iters=4",
+                     "train.save_every=2"]) == 0
+    finally:
+        os.umask(old)
+    assert _checkpoint_names(run) == ["ckpt_0000002.pt", "ckpt_0000004.pt"]
+    return run
+
+
+@pytest.fixture
+def run_copy(trained96, tmp_path) -> Path:
+    """A copy of `trained96` to resume, damage or mesh."""
+    return Path(shutil.copytree(trained96, tmp_path / "run"))
+
+
+# ------------------------------------------------------------------------------------------
+# What a command says when it refuses: one line, no traceback.
+
+
+def _error_line(err: str, command: str, *named: str, alone: bool = False) -> str:
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.startswith(f"neus-l0 {command}: error: ")]
+    assert len(lines) == 1, err
+    if alone:
+        assert [ln for ln in err.splitlines() if ln.strip()] == lines, err
+    for needle in named:
+        assert needle in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="session")
+def error_line():
+    """``error_line(err, command, *named, alone=False) -> str``: the one ``neus-l0 COMMAND:
+    error:`` line of stderr `err`, naming every `named`; no traceback. `alone`: it is all of
+    stderr (no notes before it)."""
+    return _error_line
+
+
+@pytest.fixture
+def refused(capsys):
+    """``refused(argv, *named, code=2, alone=False) -> str``: run the CLI in-process; assert
+    exit `code` and one error line naming `named` (`error_line`); that line."""
+    def run(argv: list[str], *named: str, code: int = 2, alone: bool = False) -> str:
+        rc = main(argv)
+        err = capsys.readouterr().err
+        assert rc == code, err
+        return _error_line(err, argv[0], *named, alone=alone)
+    return run
+
+
+def _one_line(err: str) -> str:
+    assert "Traceback" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.fixture(scope="session")
+def one_line():
+    """``one_line(err) -> str``: the single non-empty line of `err` (asserting there is
+    exactly one, no traceback)."""
+    return _one_line
+
+
+class CliProcess:
+    """``python -m neus_l0 ARGS`` in a subprocess, for tests whose signal must reach a whole
+    process."""
+
+    @staticmethod
+    def start(args: list[str]) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "neus_l0", *args], cwd=ROOT,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    @staticmethod
+    def wait_for(paths, proc: subprocess.Popen, seconds: float = 60.0) -> None:
+        """Wait until `paths()` finds a file (training has logged), failing if `proc` ends
+        first."""
+        deadline = time.monotonic() + seconds
+        while not paths():
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "training did not start"
+            time.sleep(0.05)
+
+    @staticmethod
+    def finish(proc: subprocess.Popen, seconds: float = 60.0) -> tuple[str, str]:
+        try:
+            return proc.communicate(timeout=seconds)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+
+    @staticmethod
+    def gone(pid: int) -> bool:
+        """Whether `pid` has exited (a zombie that nobody has reaped yet counts as gone)."""
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            return False
+        return state in ("Z", "X")
+
+
+@pytest.fixture(scope="session")
+def cli_process():
+    """`CliProcess`: start, wait_for, finish and gone for ``python -m neus_l0`` subprocesses."""
+    return CliProcess
+
+
+@pytest.fixture(scope="session")
+def snapshot():
+    """``snapshot(folder) -> {relative path: bytes}`` of every file under `folder`."""
+    def files(folder: Path) -> dict[str, bytes]:
+        return {str(p.relative_to(folder)): p.read_bytes()
+                for p in sorted(folder.rglob("*")) if p.is_file()}
+    return files
+
+
+@pytest.fixture(scope="session")
+def one_point_obj():
+    """``one_point_obj(path, point) -> path``: an OBJ tetrahedron whose four vertices are all
+    `point`."""
+    def write(path: Path, point) -> Path:
+        x, y, z = (float(c) for c in point)
+        path.write_text(f"v {x} {y} {z}\n" * 4 + "f 1 2 3\nf 1 2 4\nf 2 3 4\nf 1 3 4\n")
+        return path
+    return write
 
 
 # ------------------------------------------------------------------------------------------

@@ -1,5 +1,5 @@
-"""Hypothesis strategies and checks the sampler tests share (`test_sampling_stress.py`,
-`test_sampling_sections.py`): a plain helper module, not a test module."""
+"""Hypothesis strategies and checks the sampler tests share (`sampling/test_stress.py`,
+`sampling/test_l0_sections.py`): a plain helper module, not a test module."""
 
 from __future__ import annotations
 

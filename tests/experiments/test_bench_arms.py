@@ -12,7 +12,7 @@ import pytest
 from neus_l0.experiments import arms
 from neus_l0.experiments.runner import RunSpec, read_spec
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "bench_fast_vs_neus.py"
+TOOL = Path(__file__).resolve().parents[2] / "tools" / "bench_fast_vs_neus.py"
 
 
 def _curve(*points):

@@ -3,7 +3,6 @@ one sphere for every view, numeric camera arrays, an object that fits the unit s
 writable run folder with room, and a resume on the run's own scene."""
 
 import dataclasses
-import shutil
 
 import numpy as np
 import pytest
@@ -15,13 +14,6 @@ from neus_l0.errors import NeusL0Error, SceneError
 from neus_l0.formats.neus import load_scene
 from neus_l0.train.loop import train
 from neus_l0.train.preflight import check_writable, scene_fingerprint
-
-
-@pytest.fixture
-def scene_copy(tiny_scene, tmp_path):
-    out = tmp_path / "scene"
-    shutil.copytree(tiny_scene, out)
-    return out
 
 
 def _cameras(root, **edit):

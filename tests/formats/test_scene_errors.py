@@ -13,15 +13,6 @@ from neus_l0.errors import SceneError
 from neus_l0.formats.neus import load_scene
 
 
-@pytest.fixture()
-def scene_copy(tiny_scene, tmp_path):
-    root = tmp_path / "scene"
-    for name in ("image", "mask"):
-        shutil.copytree(tiny_scene / name, root / name)
-    shutil.copy(tiny_scene / "cameras_sphere.npz", root)
-    return root
-
-
 def _edit_cameras(root, **changes):
     cams = dict(np.load(root / "cameras_sphere.npz"))
     for k, v in changes.items():
@@ -110,7 +101,7 @@ def test_wrong_shape_camera(scene_copy):
 
 
 def test_all_empty_mask(scene_copy):
-    # one empty mask is true data (tests/test_faults.py); all of them is an error
+    # one empty mask is true data (tests/cli/test_faults.py); all of them is an error
     for p in (scene_copy / "mask").iterdir():
         cv2.imwrite(str(p), np.full((48, 64, 3), 100, np.uint8))
     _expect(scene_copy, "000.png", "every mask is empty")

@@ -117,6 +117,6 @@ def test_default_handling_returns_after_the_context():
         print("survived", flush=True)
     """)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=60, cwd=Path(__file__).resolve().parents[1])
+                          timeout=60, cwd=Path(__file__).resolve().parents[2])
     assert proc.stdout.split() == ["SIGTERM", "143"]
     assert proc.returncode == -signal.SIGTERM

@@ -266,15 +266,6 @@ def test_no_checkpoint_is_none(tmp_path):
 
 # --- 6. empty masks -------------------------------------------------------------------------
 
-@pytest.fixture()
-def scene_copy(tiny_scene, tmp_path):
-    root = tmp_path / "scene"
-    for name in ("image", "mask"):
-        shutil.copytree(tiny_scene / name, root / name)
-    shutil.copy(tiny_scene / "cameras_sphere.npz", root)
-    return root
-
-
 def _blank(root, name):
     cv2.imwrite(str(root / "mask" / name), np.full((48, 64, 3), 100, np.uint8))
 

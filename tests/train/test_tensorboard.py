@@ -8,10 +8,9 @@ import math
 import numpy as np
 import pytest
 import torch
+from tensorboard.backend.event_processing import event_accumulator
 
 from neus_l0.train.tensorboard import TensorBoardLogger
-
-event_accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
 
 
 def _read(run_dir):

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import shutil
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -16,8 +15,6 @@ import trimesh
 from neus_l0.data.cameras import camera_z_depth, decompose_projection
 from neus_l0.data.rays import image_rays, pixel_rays, random_rays
 from neus_l0.formats.neus import load_scene, validate_scene
-
-DTU = Path(__file__).resolve().parents[2] / "shared" / "data" / "dtu_scan65"
 
 
 def _point_ray_distance(o, d, x):
@@ -191,9 +188,8 @@ def test_validate_summary(tiny_scene):
     assert info["warnings"] == []
 
 
-@pytest.mark.skipif(not DTU.is_dir(), reason=f"shared DTU scan not present at {DTU}")
-def test_dtu_cameras_look_at_unit_sphere():
-    scene = load_scene(DTU)
+def test_dtu_cameras_look_at_unit_sphere(shared_data):
+    scene = load_scene(shared_data("dtu_scan65"))
     assert scene.n_views == 49 and scene.has_masks
     centres = scene.c2w[:, :3, 3].double()
     axes = scene.c2w[:, :3, 2].double()

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-TOOL = Path(__file__).resolve().parent.parent / "tools" / "count_ops.py"
+TOOL = Path(__file__).resolve().parents[2] / "tools" / "count_ops.py"
 MEASURED_WITH = "2.13."
 
 

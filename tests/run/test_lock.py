@@ -16,7 +16,7 @@ import pytest
 from neus_l0.errors import NeusL0Error
 from neus_l0.run.lock import LOCK_NAME, RunLock, pid_alive
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_lock_file_names_the_holder_and_goes_on_exit(tmp_path):

@@ -20,13 +20,6 @@ def test_the_view_index_is_the_last_number_in_the_name(name, index):
     assert view_index(name) == index
 
 
-@pytest.fixture
-def scene_copy(tiny_scene, tmp_path):
-    out = tmp_path / "scene"
-    shutil.copytree(tiny_scene, out)
-    return out
-
-
 def test_unpadded_names_pair_with_their_own_cameras(tiny_scene, scene_copy):
     """0.png .. 7.png (and masks likewise) sort as 0, 1, 10, ... by name; by number they
     give exactly the padded scene."""

@@ -27,7 +27,7 @@ from neus_l0.formats.neus import load_scene
 from neus_l0.formats.open import open_scene
 from neus_l0.formats.transforms import load_views, read_transforms
 
-TOOL = Path(__file__).resolve().parent.parent / "tools" / "export_transforms.py"
+TOOL = Path(__file__).resolve().parents[2] / "tools" / "export_transforms.py"
 MOVE = ["--rotate", "40", "--scale", "0.01", "--translate", "1", "2", "-3"]
 #: kind -> the exporter's extra arguments (nerfstudio: mask_path files; the others: RGBA).
 KINDS = {"nerfstudio": [], "ngp": ["--rgba"], "blender": ["--rgba", "--holdout", "4"]}

@@ -22,8 +22,6 @@ from neus_l0.bounds.hull import (
 )
 from neus_l0.errors import NeusL0Error
 
-BUNNY = Path("/work/shared/meshes/bunny.obj")
-
 
 def _make(tmp_path_factory, name: str, views: int = 16, width: int = 100,
           height: int = 75) -> Path:
@@ -214,13 +212,12 @@ def test_pits_and_thin_truth_inside_default_hull(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_bunny_truth_inside_default_hull(tmp_path_factory):
-    if not BUNNY.is_file():
-        pytest.skip(f"{BUNNY} is not here (development machines only)")
+def test_bunny_truth_inside_default_hull(tmp_path_factory, shared_data):
+    bunny = shared_data("bunny")
     from neus_l0.formats.neus import load_scene
 
     # at 200x150 the ears are thin enough that 2 px of erosion loses 0.1 % (measured 99.899 %)
-    root = _make(tmp_path_factory, str(BUNNY), width=300, height=225)
+    root = _make(tmp_path_factory, str(bunny), width=300, height=225)
     got = _safety(root, load_scene(root))
     assert got["clean"] == 1.0
     assert got["eroded"] >= 0.999

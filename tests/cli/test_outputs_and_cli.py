@@ -14,7 +14,7 @@ from neus_l0.config.load import load_config
 from neus_l0.errors import NeusL0Error
 from neus_l0.mesh.extract import MESH_FORMATS, export_mesh
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _coloured_sphere() -> trimesh.Trimesh:

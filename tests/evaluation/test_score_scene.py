@@ -7,7 +7,6 @@ fine icosphere (its faces lie within 0.0008 of the sphere).
 
 import json
 import math
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -304,15 +303,10 @@ def test_scene_errors(scene, tmp_path, capsys):
 @pytest.mark.slow
 def test_synth_scene_gt_mesh_scores_zero_against_itself(tmp_path, capsys):
     """`neus-l0 synth`'s own gt_mesh.ply against its scene: zero, point-to-mesh."""
-    import inspect
+    from neus_l0.synthetic.scene import make_scene
 
-    synthetic = pytest.importorskip("neus_l0.synthetic.scene")
-    if not hasattr(synthetic, "make_scene"):
-        pytest.skip("neus_l0.synthetic.scene.make_scene is not there yet")
-    params = inspect.signature(synthetic.make_scene).parameters
-    kw = {"progress": False} if "progress" in params else {}
-    root = Path(synthetic.make_scene("demo", tmp_path / "demo", views=8, width=80, height=60,
-                                     seed=0, **kw))
+    root = make_scene("demo", tmp_path / "demo", views=8, width=80, height=60, seed=0,
+                      progress=False)
     rc = main(["eval", str(root / "gt_mesh.ply"), "--scene", str(root)])
     assert rc == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

@@ -36,7 +36,7 @@ def test_wmask_and_womask_match_neus():
     assert (wo.model.background.layers, wo.model.background.hidden) == (8, 256)
 
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("spec", ["wmask", "confs/wmask.yaml", "wmask.yaml", "./confs/wmask.yaml",
