@@ -251,8 +251,8 @@ def test_the_architecture_page_shows_the_imports_as_they_are():
 
 
 def test_no_test_module_imports_another():
-    names = {p.stem for p in (ROOT / "tests").glob("test_*.py")}
-    for path in (ROOT / "tests").glob("*.py"):
+    names = {p.stem for p in (ROOT / "tests").rglob("test_*.py")}
+    for path in (ROOT / "tests").rglob("*.py"):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             mods = ([node.module] if isinstance(node, ast.ImportFrom) and node.module else
                     [a.name for a in node.names] if isinstance(node, ast.Import) else [])
@@ -263,7 +263,7 @@ def test_tools_and_tests_do_not_reach_into_each_other_through_sys_path():
     """Shared test fixtures live in tests/conftest.py, shared tool code in tools/_common.py;
     neither folder puts the other on ``sys.path``."""
     for folder in ("tools", "tests"):
-        for path in (ROOT / folder).glob("*.py"):
+        for path in (ROOT / folder).rglob("*.py"):
             for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
                 assert not (isinstance(node, ast.Attribute) and node.attr == "path"
                             and isinstance(node.value, ast.Name) and node.value.id == "sys"), \
@@ -286,7 +286,7 @@ def test_every_name_is_imported_from_the_module_that_defines_it():
     """No re-exports: a module that moved, or a name one module imports from another, is
     imported from where it is defined (in the package, its tests and tools)."""
     defined = {m: _defined(p) for m, p in MODULES.items()}
-    files = [*MODULES.values(), *(ROOT / "tests").glob("*.py"), *(ROOT / "tools").glob("*.py")]
+    files = [*MODULES.values(), *(ROOT / "tests").rglob("*.py"), *(ROOT / "tools").glob("*.py")]
     wrong = []
     for path in files:
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
@@ -296,6 +296,18 @@ def test_every_name_is_imported_from_the_module_that_defines_it():
                             and f"{node.module}.{a.name}" not in MODULES):
                         wrong.append(f"{path.relative_to(ROOT)}: {node.module}.{a.name}")
     assert not wrong, wrong
+
+
+def test_tests_mirror_the_package():
+    """At least 90 % of the test files sit in a folder named for a room (or ``cli/``), and no
+    test file is over 800 lines."""
+    rooms = {_room(m) for m in MODULES} | {"cli"}
+    files = sorted((ROOT / "tests").rglob("test_*.py"))
+    placed = [f for f in files if f.parent.name in rooms]
+    assert len(placed) >= 0.9 * len(files), sorted(str(f) for f in set(files) - set(placed))
+    long = [f"{f.relative_to(ROOT)} ({n} lines)" for f in files
+            if (n := len(f.read_text(encoding="utf-8").splitlines())) > 800]
+    assert not long, long
 
 
 def test_the_current_benchmarks_page_stays_a_page():
