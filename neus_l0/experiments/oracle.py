@@ -56,6 +56,11 @@ _BLUR = SamplerConfig(name="l0", l0=L0Config(blur=True, pad=0.001, pad_mode="abs
                                              masses="interpolant"))
 #: The paper's draw without maxblur (the L0 default between the first study and `masses`).
 _INTERP = SamplerConfig(name="l0", l0=L0Config(masses="interpolant"))
+def _with(base: SamplerConfig, **l0) -> SamplerConfig:
+    """`base` with some of its L0 options changed."""
+    return dataclasses.replace(base, l0=dataclasses.replace(base.l0, **l0))
+
+
 #: The variants compared: label -> sampler settings ("interp": the interpolant's masses, the
 #: paper's draw; labels without "blur": maxblur off; bare L0 names: the default, `sections`).
 VARIANTS: dict[str, SamplerConfig] = {
@@ -65,18 +70,18 @@ VARIANTS: dict[str, SamplerConfig] = {
     "l0-inverse": SamplerConfig(name="l0-inverse"),
     "l0-linear": SamplerConfig(name="l0-linear"),
     "l0 interp": _INTERP,
-    "l0 interp rel.01": dataclasses.replace(_INTERP, pad=0.01, pad_mode="relative"),
-    "l0 interp endpoint": dataclasses.replace(_INTERP, placement="endpoint"),
-    "l0 interp nodensity": dataclasses.replace(_INTERP, as_density=False),
+    "l0 interp rel.01": _with(_INTERP, pad=0.01, pad_mode="relative"),
+    "l0 interp endpoint": _with(_INTERP, placement="endpoint"),
+    "l0 interp nodensity": _with(_INTERP, as_density=False),
     "l0-inverse interp": dataclasses.replace(_INTERP, name="l0-inverse"),
     "l0-linear interp": dataclasses.replace(_INTERP, name="l0-linear"),
     "l0 blur abs.001": _BLUR,  # the default before the first study
-    "l0 blur abs.01": dataclasses.replace(_BLUR, pad=0.01),
-    "l0 blur nopad": dataclasses.replace(_BLUR, pad_mode="none"),
-    "l0 blur rel.01": dataclasses.replace(_BLUR, pad=0.01, pad_mode="relative"),
-    "l0 blur rel.1": dataclasses.replace(_BLUR, pad=0.1, pad_mode="relative"),
-    "l0 blur endpoint": dataclasses.replace(_BLUR, placement="endpoint"),
-    "l0 blur nodensity": dataclasses.replace(_BLUR, as_density=False),
+    "l0 blur abs.01": _with(_BLUR, pad=0.01),
+    "l0 blur nopad": _with(_BLUR, pad_mode="none"),
+    "l0 blur rel.01": _with(_BLUR, pad=0.01, pad_mode="relative"),
+    "l0 blur rel.1": _with(_BLUR, pad=0.1, pad_mode="relative"),
+    "l0 blur endpoint": _with(_BLUR, placement="endpoint"),
+    "l0 blur nodensity": _with(_BLUR, as_density=False),
     "l0-inverse blur": dataclasses.replace(_BLUR, name="l0-inverse"),
     "l0-linear blur": dataclasses.replace(_BLUR, name="l0-linear"),
 }
