@@ -9,7 +9,7 @@ import pytest
 
 @pytest.mark.parametrize("override", [
     "render.chunk=0", "train.save_every=-7", "train.max_seconds=-1", "train.lr=.nan",
-    "render.chunk=-4", "train.igr_weight=-1", "train.lr_alpha=-1", "sampler.pad=.inf",
+    "render.chunk=-4", "train.igr_weight=-1", "train.lr_alpha=-1", "sampler.l0.pad=.inf",
     "train.warm_up=-1", "train.val_downscale=0", "train.keep_checkpoints=-1",
     "train.lr=.inf",
 ])

@@ -57,7 +57,7 @@ def test_eval_density_not_positive_finite(tiny_scene, tmp_path, density, refused
 
 def test_eval_density_too_fine_is_refused_before_sampling(tiny_scene, tmp_path, monkeypatch,
                                                           refused):
-    import neus_l0.mesh.memory as memory
+    import neus_l0.device as memory
 
     budget = 4 * 2**30
     monkeypatch.setattr(memory, "available_memory", lambda: budget)
