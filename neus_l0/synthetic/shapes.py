@@ -254,11 +254,10 @@ def pits_and_thin_shape(deep_pit: bool = False) -> BuiltinShape:
     cutters.append(Box((-55.0, -5.0, top), (30.0, 3.0, 20.0)))
     feats.append({"kind": "pit", "name": "slot w6 d20", "center": [-55.0, -5.0, top - 10.0],
                   "radius": 30.0, "axis": [0.0, 0.0, 1.0]})
-    deep_rods = []
+    deep_rods, deep_feats = [], []
     if deep_pit:
-        c, deep_rods, fs = deep_pit_parts(top)
+        c, deep_rods, deep_feats = deep_pit_parts(top)
         cutters.append(c)
-        feats.extend(fs)
     parts = [Difference(body, tuple(cutters)), *deep_rods]
     # thin rods standing on the top face
     for i, r in enumerate([1.0, 2.0, 3.5, 6.0]):
@@ -271,6 +270,7 @@ def pits_and_thin_shape(deep_pit: bool = False) -> BuiltinShape:
         parts.append(Box((35.0, y, top + 20.0), (18.0, th / 2, 21.0)))
         feats.append({"kind": "thin", "name": f"fin t{th:g}", "center": [35.0, y, top + 20.0],
                       "radius": 25.0, "axis": [0.0, 1.0, 0.0]})
+    feats.extend(deep_feats)  # last: the other features keep their order
     deep = ("; a deep pit r 18 depth 36 with rods r 1.5/3/5 (28 tall) on its floor"
             if deep_pit else "")
     return BuiltinShape("pits-deep" if deep_pit else "pits-and-thin", Union(tuple(parts)),

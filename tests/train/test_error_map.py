@@ -20,8 +20,8 @@ from neus_l0.bounds.error_map import (
 from neus_l0.bounds.pixel_pool import with_error_map
 from neus_l0.config.load import load_config
 from neus_l0.errors import ConfigError
-from neus_l0.train.losses import color_l1, mask_bce, weighted_color_l1
 from neus_l0.train.loop import train
+from neus_l0.train.losses import color_l1, mask_bce, weighted_color_l1
 
 
 def test_probabilities_mix_the_map_with_uniform():
