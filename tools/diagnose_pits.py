@@ -43,6 +43,8 @@ from neus_l0.render.volume import coarse_z_vals
 from neus_l0.sampling.upsample import build_sampler, up_sample
 from neus_l0.synthetic.scene import WORLD_OFFSET
 from neus_l0.synthetic.shapes import DEEP_PIT, DEEP_PIT_RODS, Translated, builtin_shape
+from neus_l0.train.callbacks import TrainingCallback
+from neus_l0.train.loop import train
 
 LABELS = ("nothing", "open surface", "pit wall", "pit floor", "rods")
 #: World-unit tolerance of the labels (about a pixel's footprint at 400x300).
@@ -157,6 +159,36 @@ def sample_table(scene, pool, pool_labels: np.ndarray, n_rays: int,
     return rows
 
 
+class _RaysWhereTheMapDraws(TrainingCallback):
+    """At each log step: the rays a step draws per label under the error map's table."""
+
+    def __init__(self, labels: np.ndarray, batch: int):
+        self.labels, self.batch, self.rows = labels, batch, []
+
+    def on_log(self, run, metrics: dict) -> None:
+        pool = run.setup.pool
+        prob = pool.error_map.prob.double().cpu().numpy()
+        lab = self.labels[pool.pixels.cpu().numpy()]
+        row = {"iteration": run.iteration, "loss": metrics.get("loss", float("nan"))}
+        row.update({name: float(prob[lab == k].sum()) * self.batch
+                    for k, name in enumerate(LABELS)})
+        self.rows.append(row)
+
+
+def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float,
+                  fraction: float) -> list[dict]:
+    """Train config `conf` with ``train.error_map.fraction`` for `seconds` (one thread, eager)
+    and return the rays a step draws per label at each log step (the table rebuilt there)."""
+    cfg = load_config(conf, [f"train.error_map.fraction={fraction}",
+                                f"train.max_seconds={seconds}", "train.compile=false",
+                                "train.threads=1", "train.val_every=0", "train.save_every=0",
+                                "train.tensorboard=false", "train.log_every=100"])
+    cb = _RaysWhereTheMapDraws(labels.reshape(-1), cfg.train.batch_size)
+    with tempfile.TemporaryDirectory() as tmp:
+        train(scene, cfg, Path(tmp) / "run", progress=False, callbacks=[cb])
+    return cb.rows
+
+
 def _markdown(rows: list[dict]) -> str:
     keys = list(rows[0])
 
@@ -175,6 +207,10 @@ def main() -> None:
     ap.add_argument("--rays", type=int, default=96, help="rays per feature for the samples")
     ap.add_argument("--budgets", default="16+16,32+32")
     ap.add_argument("--out", type=Path, default=None, help="write the tables as JSON")
+    ap.add_argument("--train-seconds", type=float, default=0.0,
+                    help="also train this long with the error map on and report where it "
+                         "draws (0: no training)")
+    ap.add_argument("--fraction", type=float, default=0.5, help="train.error_map.fraction")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(args.conf)
@@ -191,8 +227,14 @@ def main() -> None:
     budgets = [(int(a), int(b), 2) for a, b in (s.split("+") for s in args.budgets.split(","))]
     samples = sample_table(scene, pool, pool_labels, args.rays, budgets)
     print(_markdown(samples))
+    drawn = []
+    if args.train_seconds > 0:
+        drawn = error_map_run(scene, args.conf, labels, args.train_seconds, args.fraction)
+        print(f"\nrays a step draws per feature, error map fraction {args.fraction}\n"
+              f"{_markdown(drawn)}")
     if args.out:
-        args.out.write_text(json.dumps({"views": views, "samples": samples}, indent=1))
+        args.out.write_text(json.dumps({"views": views, "samples": samples, "error_map": drawn},
+                                       indent=1))
 
 
 if __name__ == "__main__":
