@@ -1,11 +1,17 @@
 """Error-map ray sampling (instant-ngp style): draw training pixels where the error is.
 
-The pixel pool (`neus_l0.bounds.pixel_pool`) holds P pixels. An error map keeps a running
-error per pool pixel; a draw table made from it gives pixel j the probability
+The pixel pool (`neus_l0.bounds.pixel_pool`) holds P pixels, grouped into K tiles of T x T
+pixels of a view (`train.error_map.tile`; 1: a tile per pixel). An error map keeps a running
+error per tile; every pool pixel takes its tile's error e_j, and a draw table made from them
+gives pixel j the probability
 
     p_j = (1 - f) / P + f * e_j / sum(e)        (f: `train.error_map.fraction`)
 
-so every pixel keeps at least (1 - f) / P. A ray drawn with probability p_j carries the
+so every pixel keeps at least (1 - f) / P, and a tile's share grows with its error and its
+pool pixels. Tiles, not pixels: a run draws fewer rays than a pool holds pixels (a few
+hundred thousand against millions), so most pixels of a per-pixel map would never be
+measured. Errors start at 0 (the uniform draw); a tile gets the map's share once a ray of
+it has been measured. A ray drawn with probability p_j carries the
 importance weight ``w_j = 1 / (P p_j)``: for any per-ray loss l, E[w l] over one draw is
 sum_j p_j l_j / (P p_j) = the pool's mean of l, whatever the map holds. The step weights its
 colour and mask terms so (`neus_l0.train.losses.neus_loss`).
@@ -29,7 +35,8 @@ class ErrorMap:
     """A pool's running error and the draw table made from it.
 
     Attributes:
-        error: (P,) float32 running error of each pool pixel (starts at 1: uniform).
+        error: (K,) float32 running error of each tile (starts at 0: uniform).
+        tile: (P,) int64 each pool pixel's tile in [0, K).
         prob: (P,) float32 draw probability of each pool pixel under the current table.
         cdf: (P,) float64 cumulative sum of `prob` (the table `draw` searches).
         fraction: f, the share of the draw that follows the map, in [0, 1).
@@ -39,6 +46,7 @@ class ErrorMap:
     """
 
     error: Tensor
+    tile: Tensor
     prob: Tensor
     cdf: Tensor
     fraction: float
@@ -61,16 +69,17 @@ def draw_probabilities(error: Tensor, fraction: float) -> Tensor:
 
 def refresh_table(emap: ErrorMap) -> None:
     """Rebuild `emap`'s draw table (prob, cdf) from its running error, in place."""
-    p = draw_probabilities(emap.error, emap.fraction)
+    p = draw_probabilities(emap.error[emap.tile], emap.fraction)
     emap.prob = p.float()
     emap.cdf = torch.cumsum(p, 0)
 
 
-def new_error_map(n: int, fraction: float, decay: float, device: torch.device | str,
+def new_error_map(tile: Tensor, fraction: float, decay: float,
                   foreground: float = 1.0) -> ErrorMap:
-    """An error map over `n` pool pixels with equal errors (the uniform draw)."""
-    emap = ErrorMap(torch.ones(n, device=device), torch.empty(0), torch.empty(0), fraction,
-                    decay, foreground)
+    """An error map over pool pixels in (P,) int64 tiles ``0..K-1``, errors 0 (uniform)."""
+    n_tiles = int(tile.max()) + 1 if tile.numel() else 0
+    emap = ErrorMap(torch.zeros(n_tiles, device=tile.device), tile, torch.empty(0),
+                    torch.empty(0), fraction, decay, foreground)
     refresh_table(emap)
     return emap
 
@@ -98,7 +107,21 @@ def importance_weights(prob: Tensor, idx: Tensor) -> Tensor:
 
 
 def update_errors(emap: ErrorMap, idx: Tensor, ray_error: Tensor) -> None:
-    """Blend the (B,) errors of the rays at (B,) pool indices into the running error, in
-    place: ``e <- (1 - decay) e + decay * err`` (a pixel drawn twice keeps one of its rays)."""
+    """Blend the (B,) errors of the rays at (B,) pool indices into their tiles' running
+    errors, in place: ``e <- (1 - decay) e + decay * err`` (a tile hit by several rays of
+    the batch keeps one of them)."""
     err = torch.nan_to_num(ray_error.detach().float(), nan=0.0, posinf=0.0).clamp_min(0.0)
-    emap.error[idx] = torch.lerp(emap.error[idx], err, emap.decay)
+    t = emap.tile[idx]
+    emap.error[t] = torch.lerp(emap.error[t], err, emap.decay)
+
+
+def pixel_tiles(pixels: Tensor, height: int, width: int, size: int) -> Tensor:
+    """(P,) int64 tiles ``0..K-1`` of (P,) flat pixel indices ``view * H * W + y * W + x``:
+    pixels share a tile when they lie in the same `size` x `size` block of the same view
+    (numbered in order of first appearance of the blocks' sorted ids)."""
+    view = pixels // (height * width)
+    y, x = (pixels % (height * width)) // width, pixels % width
+    cols = -(-width // size)
+    rows = -(-height // size)
+    block = view * (rows * cols) + (y // size) * cols + x // size
+    return torch.unique(block, return_inverse=True)[1]

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from neus_l0.bounds.error_map import ErrorMap, new_error_map
+from neus_l0.bounds.error_map import ErrorMap, new_error_map, pixel_tiles
 from neus_l0.bounds.spans import RayBounds, packed_spans
 from neus_l0.config.schema import Config, RenderConfig
 from neus_l0.data.rays import rays_at
@@ -150,7 +150,8 @@ def reachable_pixels(scene: Scene, cfg: RenderConfig, bounds: Sequence[RayBounds
 def with_error_map(pool: PixelPool | None, scene: Scene, cfg: Config) -> PixelPool | None:
     """`pool` with an error map when ``train.error_map.fraction`` > 0 (else `pool` as is).
 
-    Without a pool (every pixel counts) the map covers a pool of every pixel. The map's
+    Without a pool (every pixel counts) the map covers a pool of every pixel. Its tiles
+    are ``train.error_map.tile`` pixels square. The map's
     foreground share is that of the pool's pixels whose mask is > 0.5 (1 when the run
     does not use masks, ``train.mask_weight`` 0).
     """
@@ -163,6 +164,6 @@ def with_error_map(pool: PixelPool | None, scene: Scene, cfg: Config) -> PixelPo
     fg = 1.0
     if cfg.train.mask_weight > 0:
         fg = float((scene.masks.reshape(-1)[pool.pixels] > 0.5).float().mean())
-    pool.error_map = new_error_map(pool.pixels.numel(), c.fraction, c.decay,
-                                   pool.pixels.device, max(fg, 1e-6))
+    tiles = pixel_tiles(pool.pixels, scene.height, scene.width, c.tile)
+    pool.error_map = new_error_map(tiles, c.fraction, c.decay, max(fg, 1e-6))
     return pool

@@ -132,6 +132,7 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "eikonal_fraction"): Range(0, 1, lo_open=True),
     (ErrorMapConfig, "fraction"): Range(0, 1, hi_open=True),
     (ErrorMapConfig, "decay"): Range(0, 1, lo_open=True),
+    (ErrorMapConfig, "tile"): at_least(1),
 }
 
 

@@ -344,14 +344,17 @@ class SamplerConfig:
 @dataclass
 class ErrorMapConfig:
     """Error-map ray sampling (instant-ngp style; `neus_l0.bounds.error_map`): part of each
-    batch is drawn from a running per-pixel error map of the pixel pool, the rest uniformly,
+    batch is drawn from a running per-tile error map of the pixel pool, the rest uniformly,
     and each ray's colour and mask terms are weighted by 1 / (P p) so that the loss's
     expectation is the whole pool's. Off by default."""
 
     fraction: float = 0.0
     """Share of the draw that follows the error map, in [0, 1) (0: off, uniform draws)."""
     decay: float = 0.3
-    """Weight of a ray's new error in its pixel's running error, in (0, 1]."""
+    """Weight of a ray's new error in its tile's running error, in (0, 1]."""
+    tile: int = 8
+    """Side of the map's tiles in pixels (1: a tile per pixel); every pool pixel of a tile
+    takes the tile's error."""
 
 
 @dataclass

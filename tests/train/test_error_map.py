@@ -14,6 +14,7 @@ from neus_l0.bounds.error_map import (
     draw_probabilities,
     importance_weights,
     new_error_map,
+    pixel_tiles,
     refresh_table,
     update_errors,
 )
@@ -35,7 +36,7 @@ def test_probabilities_mix_the_map_with_uniform():
 
 def test_the_draw_matches_its_weights():
     """Pearson's chi-square of 20000 draws over 6 pixels under the 0.999 quantile."""
-    emap = new_error_map(6, 0.8, 1.0, "cpu")
+    emap = new_error_map(torch.arange(6), 0.8, 1.0)
     emap.error = torch.tensor([0.1, 5.0, 0.0, 1.0, 2.5, 0.4])
     refresh_table(emap)
     n = 20000
@@ -85,13 +86,27 @@ def test_uniform_weights_give_the_plain_terms_on_a_full_foreground():
     assert float(mask_bce(op, mask, w)) == pytest.approx(float(mask_bce(op, mask)))
 
 
-def test_update_blends_the_new_errors_in():
-    emap = new_error_map(4, 0.5, 0.25, "cpu")
+def test_update_blends_the_new_errors_into_the_tiles():
+    emap = new_error_map(torch.tensor([0, 1, 1, 2]), 0.5, 0.25)
+    emap.error += 1.0
     update_errors(emap, torch.tensor([1, 3]), torch.tensor([5.0, float("nan")]))
-    assert emap.error.tolist() == pytest.approx([1.0, 2.0, 1.0, 0.75])
+    assert emap.error.tolist() == pytest.approx([1.0, 2.0, 0.75])
     assert emap.prob.tolist() == pytest.approx([0.25] * 4)  # the table waits for a refresh
     refresh_table(emap)
-    assert emap.prob[1] > emap.prob[0]
+    # pixels 1 and 2 share tile 1: both take its error
+    expected = 0.5 / 4 + 0.5 * torch.tensor([1.0, 2.0, 2.0, 0.75]) / 5.75
+    assert emap.prob.tolist() == pytest.approx(expected.tolist())
+
+
+def test_tiles_group_blocks_of_one_view():
+    H, W = 5, 6
+    flat = torch.tensor([0, 1, 2, 7, 13, 29, H * W + 0, H * W + 1])  # view 0, then view 1
+    t = pixel_tiles(flat, H, W, 2)
+    # (y, x): (0,0) (0,1) (0,2) (1,1) (2,1) (4,5) | view 1: (0,0) (0,1)
+    assert t[0] == t[1] == t[3] and t[2] != t[0] and t[4] != t[0]
+    assert t[6] == t[7] and t[6] != t[0]
+    assert sorted(set(t.tolist())) == list(range(len(set(t.tolist()))))
+    assert pixel_tiles(flat, H, W, 1).tolist() == list(range(8))
 
 
 def test_config_range_and_off_by_default():
