@@ -160,7 +160,8 @@ def sample_table(scene, pool, pool_labels: np.ndarray, n_rays: int,
 
 
 class _RaysWhereTheMapDraws(TrainingCallback):
-    """At each log step: the rays a step draws per label under the error map's table."""
+    """At each log step: the rays a step draws per label under the error map's table, and
+    the mean running error of the label's pixels (their tiles')."""
 
     def __init__(self, labels: np.ndarray, batch: int):
         self.labels, self.batch, self.rows = labels, batch, []
@@ -171,6 +172,9 @@ class _RaysWhereTheMapDraws(TrainingCallback):
         lab = self.labels[pool.pixels.cpu().numpy()]
         row = {"iteration": run.iteration, "loss": metrics.get("loss", float("nan"))}
         row.update({name: float(prob[lab == k].sum()) * self.batch
+                    for k, name in enumerate(LABELS)})
+        err = pool.error_map.error[pool.error_map.tile].cpu().numpy()
+        row.update({f"err {name}": float(err[lab == k].mean()) if (lab == k).any() else 0.0
                     for k, name in enumerate(LABELS)})
         self.rows.append(row)
 
