@@ -8,7 +8,8 @@ Both sweeps ran the same scenes, samplers, budgets and seeds (so their run folde
 names, ``OFF_DIR/runs/NAME`` against ``ON_DIR/runs/NAME``) and differ in one setting, e.g.
 ``train.error_map.fraction=0.5``. Each run's ``eval.json`` holds its Chamfer report with the
 per-feature errors of a synthetic scene (`neus_l0.evaluation.features`). Prints, per scene
-and feature (and ``total``): the mean error off and on, their ratio, the pairs the remedy
+and feature (and ``total``, ``all pits``, ``all thins``: the pooled kinds, also over every
+scene together): the mean error off and on, their ratio, the pairs the remedy
 won (lower error) of those not tied, and the two-sided sign test's p
 (`neus_l0.evaluation.paired.sign_test_p`).
 """
@@ -30,8 +31,11 @@ def run_errors(eval_json: Path, metric: str) -> tuple[str, dict[str, float]]:
     chamfer = rec.get("chamfer") or {}
     scene = Path(rec["spec"]["scene_dir"]).name
     out = {"total": chamfer.get(metric, math.nan)}
-    for f in (chamfer.get("features") or {}).get("each", []):
+    feats = chamfer.get("features") or {}
+    for f in feats.get("each", []):
         out[f["name"]] = f.get(metric, math.nan)
+    for kind, f in (feats.get("by_kind") or {}).items():
+        out[f"all {kind}s"] = f.get(metric, math.nan)
     return scene, {k: float(v) if v is not None else math.nan for k, v in out.items()}
 
 
@@ -47,6 +51,8 @@ def paired_rows(off: Path, on: Path, metric: str) -> list[dict]:
         for name in ea.keys() & eb.keys():
             if math.isfinite(ea[name]) and math.isfinite(eb[name]):
                 pairs[(scene, name)].append((ea[name], eb[name]))
+                if name == "total" or name.startswith("all "):
+                    pairs[("every scene", name)].append((ea[name], eb[name]))
     rows = []
     for (scene, name), vals in sorted(pairs.items()):
         wins = sum(b < a for a, b in vals)
