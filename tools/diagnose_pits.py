@@ -2,7 +2,8 @@
 
 Usage:
     python tools/diagnose_pits.py SCENE [--conf demo] [--rays 96] [--budgets 16+16,32+32]
-                                  [--out diag.json]
+                                  [--out diag.json] [--train-seconds S --fraction F
+                                  --tile T]
 
 SCENE is a `pits-deep` folder (``neus-l0 synth pits-deep SCENE``). Every pixel's first true
 hit (``gt_depth.npz``) is labelled by the exact geometry of the deep pit
@@ -19,6 +20,11 @@ surface (everything else the object shows), or nothing. Per label it prints:
   exact first hit: the share within 0.003 and 0.01 (normalised units) of it, the share of
   rays with none within 0.01, and the share of samples that sit on the surface (|SDF| <
   0.01) before the hit: rays grazing the rim or a rod on their way to the floor.
+
+With ``--train-seconds S`` it also trains the config for S seconds (one thread, eager) with
+``train.error_map.fraction`` `--fraction` and tiles of `--tile` pixels, and prints at each
+log step the rays a step draws per label under the map's table and the mean running error
+of the label's pixels: whether the map finds the pit.
 """
 
 from __future__ import annotations
@@ -179,11 +185,12 @@ class _RaysWhereTheMapDraws(TrainingCallback):
         self.rows.append(row)
 
 
-def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float,
-                  fraction: float) -> list[dict]:
+def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float, fraction: float,
+                  tile: int = 8) -> list[dict]:
     """Train config `conf` with ``train.error_map.fraction`` for `seconds` (one thread, eager)
     and return the rays a step draws per label at each log step (the table rebuilt there)."""
     cfg = load_config(conf, [f"train.error_map.fraction={fraction}",
+                             f"train.error_map.tile={tile}",
                                 f"train.max_seconds={seconds}", "train.compile=false",
                                 "train.threads=1", "train.val_every=0", "train.save_every=0",
                                 "train.tensorboard=false", "train.log_every=100"])
@@ -215,6 +222,7 @@ def main() -> None:
                     help="also train this long with the error map on and report where it "
                          "draws (0: no training)")
     ap.add_argument("--fraction", type=float, default=0.5, help="train.error_map.fraction")
+    ap.add_argument("--tile", type=int, default=8, help="train.error_map.tile")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(args.conf)
@@ -233,8 +241,10 @@ def main() -> None:
     print(_markdown(samples))
     drawn = []
     if args.train_seconds > 0:
-        drawn = error_map_run(scene, args.conf, labels, args.train_seconds, args.fraction)
-        print(f"\nrays a step draws per feature, error map fraction {args.fraction}\n"
+        drawn = error_map_run(scene, args.conf, labels, args.train_seconds, args.fraction,
+                              args.tile)
+        print(f"\nrays a step draws per feature, error map fraction {args.fraction}, tile "
+              f"{args.tile}\n"
               f"{_markdown(drawn)}")
     if args.out:
         args.out.write_text(json.dumps({"views": views, "samples": samples, "error_map": drawn},
