@@ -6,6 +6,7 @@ import torch
 from neus_l0.config.load import load_config
 from neus_l0.errors import ConfigError
 from neus_l0.fields.model import make_model
+from neus_l0.sampling.upsample import build_sampler
 from neus_l0.train.loop import train
 from neus_l0.train.step import draw_step_inputs, render_and_loss
 
@@ -23,7 +24,7 @@ def test_the_step_has_no_graph_break(small, sphere_scene, tmp_path, conf, with_s
     model = make_model(cfg)
     inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), None)
     torch._dynamo.reset()
-    ex = torch._dynamo.explain(render_and_loss)(model, inputs, cfg, cfg.sampler, ())
+    ex = torch._dynamo.explain(render_and_loss)(model, inputs, cfg, build_sampler(cfg.sampler), ())
     assert ex.graph_break_count == 0, [b.reason for b in ex.break_reasons]
     assert ex.graph_count == 1
 
@@ -75,6 +76,6 @@ def test_the_step_with_looked_up_spans_has_no_graph_break(sphere_scene, tmp_path
     inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), pool)
     assert inputs.span is not None
     torch._dynamo.reset()
-    ex = torch._dynamo.explain(render_and_loss)(model, inputs, cfg, cfg.sampler, ())
+    ex = torch._dynamo.explain(render_and_loss)(model, inputs, cfg, build_sampler(cfg.sampler), ())
     assert ex.graph_break_count == 0, [b.reason for b in ex.break_reasons]
     assert ex.graph_count == 1

@@ -134,3 +134,24 @@ def test_a_run_with_the_error_map_trains(small, sphere_scene, tmp_path):
     assert res.iteration == 20 and len(rows) == 4
     assert all(np.isfinite(r["loss"]) for r in rows)
     assert rows[-1]["loss"] < rows[0]["loss"]
+
+
+def test_the_step_with_the_error_map_has_no_graph_break(sphere_scene, tmp_path):
+    """The drawn weights enter the compiled step as a tensor; the per-ray errors leave it."""
+    from neus_l0.bounds.pixel_pool import reachable_pixels
+    from neus_l0.bounds.static import static_bounds
+    from neus_l0.fields.model import make_model
+    from neus_l0.sampling.upsample import build_sampler
+    from neus_l0.train.step import draw_step_inputs, render_and_loss
+
+    scene = sphere_scene(tmp_path / "s")
+    cfg = load_config("demo", ["model.sdf.gradient=analytic", "train.error_map.fraction=0.5"])
+    pool = with_error_map(reachable_pixels(scene, cfg.render, static_bounds(
+        scene, cfg, tmp_path / "run" / "hull.pt")), scene, cfg)
+    inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), pool)
+    assert inputs.ray_weight is not None and inputs.pick.shape == (64,)
+    torch._dynamo.reset()
+    ex = torch._dynamo.explain(render_and_loss)(make_model(cfg), inputs, cfg,
+                                                build_sampler(cfg.sampler), ())
+    assert ex.graph_break_count == 0, [b.reason for b in ex.break_reasons]
+    assert ex.graph_count == 1
