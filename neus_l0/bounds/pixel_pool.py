@@ -19,8 +19,9 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from neus_l0.bounds.error_map import ErrorMap, new_error_map, pixel_tiles
 from neus_l0.bounds.spans import RayBounds, packed_spans
-from neus_l0.config.schema import RenderConfig
+from neus_l0.config.schema import Config, RenderConfig
 from neus_l0.data.rays import rays_at
 from neus_l0.data.scene import Scene
 
@@ -41,11 +42,14 @@ class PixelPool:
             or None (no static bounds, or more than `MAX_SPAN_PIXELS` pixels). The bounds
             are static and a pixel's ray is fixed, so a step looks them up instead of
             computing them.
+        error_map: the running error of each pool pixel that the step draws from
+            (`neus_l0.bounds.error_map`; `train.error_map`), or None (uniform draws).
     """
 
     pixels: Tensor
     fraction: float
     spans: Tensor | None = None
+    error_map: ErrorMap | None = None
 
 
 def hull_silhouette(occupancy: Tensor, intrinsics: Tensor, c2w: Tensor, height: int,
@@ -141,3 +145,25 @@ def reachable_pixels(scene: Scene, cfg: RenderConfig, bounds: Sequence[RayBounds
     # than to look up, and a span tells `render_rays` that the rays were narrowed
     kept = torch.cat(spans) if bounds and pixels.numel() <= MAX_SPAN_PIXELS else None
     return PixelPool(pixels=pixels, fraction=pixels.numel() / (scene.n_views * hw), spans=kept)
+
+
+def with_error_map(pool: PixelPool | None, scene: Scene, cfg: Config) -> PixelPool | None:
+    """`pool` with an error map when ``train.error_map.fraction`` > 0 (else `pool` as is).
+
+    Without a pool (every pixel counts) the map covers a pool of every pixel. Its tiles
+    are ``train.error_map.tile`` pixels square. The map's
+    foreground share is that of the pool's pixels whose mask is > 0.5 (1 when the run
+    does not use masks, ``train.mask_weight`` 0).
+    """
+    c = cfg.train.error_map
+    if c.fraction <= 0:
+        return pool
+    if pool is None:
+        n = scene.n_views * scene.height * scene.width
+        pool = PixelPool(pixels=torch.arange(n, device=scene.device), fraction=1.0)
+    fg = 1.0
+    if cfg.train.mask_weight > 0:
+        fg = float((scene.masks.reshape(-1)[pool.pixels] > 0.5).float().mean())
+    tiles = pixel_tiles(pool.pixels, scene.height, scene.width, c.tile)
+    pool.error_map = new_error_map(tiles, c.fraction, c.decay, max(fg, 1e-6))
+    return pool

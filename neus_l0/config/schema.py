@@ -342,6 +342,22 @@ class SamplerConfig:
 
 
 @dataclass
+class ErrorMapConfig:
+    """Error-map ray sampling (instant-ngp style; `neus_l0.bounds.error_map`): part of each
+    batch is drawn from a running per-tile error map of the pixel pool, the rest uniformly,
+    and each ray's colour and mask terms are weighted by 1 / (P p) so that the loss's
+    expectation is the whole pool's. Off by default."""
+
+    fraction: float = 0.0
+    """Share of the draw that follows the error map, in [0, 1) (0: off, uniform draws)."""
+    decay: float = 0.3
+    """Weight of a ray's new error in its tile's running error, in (0, 1]."""
+    tile: int = 8
+    """Side of the map's tiles in pixels (1: a tile per pixel); every pool pixel of a tile
+    takes the tile's error."""
+
+
+@dataclass
 class TrainConfig:
     """Optimisation, losses, logging and checkpoints."""
 
@@ -399,6 +415,9 @@ class TrainConfig:
     threads: int = 0
     """Torch CPU threads on the CPU (0: the cores free when the run starts, from the load
     average; `neus-l0 train --threads N` overrides it). Ignored on CUDA."""
+    error_map: ErrorMapConfig = field(default_factory=ErrorMapConfig)
+    """Error-map ray sampling (off by default); its draw table is rebuilt every
+    `log_every` iterations."""
     eikonal_fraction: float = 1.0
     """Fraction of the samples (drawn at random each step) that the Eikonal term averages
     over; 1: all samples within radius 1.2 (NeuS)."""

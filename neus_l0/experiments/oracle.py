@@ -56,9 +56,12 @@ _BLUR = SamplerConfig(name="l0", l0=L0Config(blur=True, pad=0.001, pad_mode="abs
                                              masses="interpolant"))
 #: The paper's draw without maxblur (the L0 default between the first study and `masses`).
 _INTERP = SamplerConfig(name="l0", l0=L0Config(masses="interpolant"))
-def _with(base: SamplerConfig, **l0) -> SamplerConfig:
-    """`base` with some of its L0 options changed."""
-    return dataclasses.replace(base, l0=dataclasses.replace(base.l0, **l0))
+
+
+def _l0(base: SamplerConfig, name: str | None = None, **l0) -> SamplerConfig:
+    """`base` with another sampler `name` and other L0 options (`sampler.l0.*`)."""
+    return dataclasses.replace(base, name=name or base.name,
+                               l0=dataclasses.replace(base.l0, **l0))
 
 
 #: The variants compared: label -> sampler settings ("interp": the interpolant's masses, the
@@ -70,20 +73,20 @@ VARIANTS: dict[str, SamplerConfig] = {
     "l0-inverse": SamplerConfig(name="l0-inverse"),
     "l0-linear": SamplerConfig(name="l0-linear"),
     "l0 interp": _INTERP,
-    "l0 interp rel.01": _with(_INTERP, pad=0.01, pad_mode="relative"),
-    "l0 interp endpoint": _with(_INTERP, placement="endpoint"),
-    "l0 interp nodensity": _with(_INTERP, as_density=False),
-    "l0-inverse interp": dataclasses.replace(_INTERP, name="l0-inverse"),
-    "l0-linear interp": dataclasses.replace(_INTERP, name="l0-linear"),
+    "l0 interp rel.01": _l0(_INTERP, pad=0.01, pad_mode="relative"),
+    "l0 interp endpoint": _l0(_INTERP, placement="endpoint"),
+    "l0 interp nodensity": _l0(_INTERP, as_density=False),
+    "l0-inverse interp": _l0(_INTERP, name="l0-inverse"),
+    "l0-linear interp": _l0(_INTERP, name="l0-linear"),
     "l0 blur abs.001": _BLUR,  # the default before the first study
-    "l0 blur abs.01": _with(_BLUR, pad=0.01),
-    "l0 blur nopad": _with(_BLUR, pad_mode="none"),
-    "l0 blur rel.01": _with(_BLUR, pad=0.01, pad_mode="relative"),
-    "l0 blur rel.1": _with(_BLUR, pad=0.1, pad_mode="relative"),
-    "l0 blur endpoint": _with(_BLUR, placement="endpoint"),
-    "l0 blur nodensity": _with(_BLUR, as_density=False),
-    "l0-inverse blur": dataclasses.replace(_BLUR, name="l0-inverse"),
-    "l0-linear blur": dataclasses.replace(_BLUR, name="l0-linear"),
+    "l0 blur abs.01": _l0(_BLUR, pad=0.01),
+    "l0 blur nopad": _l0(_BLUR, pad_mode="none"),
+    "l0 blur rel.01": _l0(_BLUR, pad=0.01, pad_mode="relative"),
+    "l0 blur rel.1": _l0(_BLUR, pad=0.1, pad_mode="relative"),
+    "l0 blur endpoint": _l0(_BLUR, placement="endpoint"),
+    "l0 blur nodensity": _l0(_BLUR, as_density=False),
+    "l0-inverse blur": _l0(_BLUR, name="l0-inverse"),
+    "l0-linear blur": _l0(_BLUR, name="l0-linear"),
 }
 
 

@@ -4,9 +4,10 @@ Pipeline: shape (analytic SDF or mesh) placed in a DTU-like world frame (millime
 object about 250 across, centred away from the origin) -> ground-truth mesh (marching cubes
 of the SDF with every vertex Newton-projected onto the analytic surface; for mesh input the
 mesh itself) -> bounding sphere with a 10 % margin (``scale_mat``, as NeuS's preprocessing
-does) -> camera cap (elevation 20-70 degrees, distance 3.9-4.4 sphere radii, like DTU's 4.1)
--> renders (textured, shaded, anti-aliased, textured backdrop), masks, depth maps ->
-ground-truth points (dense surface samples, exact, kept where some camera sees them).
+does) -> camera cap (elevation `ELEVATION_DEG`, 20-70 degrees: views from above; distance
+3.9-4.4 sphere radii, like DTU's 4.1) -> renders (textured, shaded, anti-aliased, textured
+backdrop), masks, depth maps -> ground-truth points (dense surface samples, exact, kept
+where some camera sees them).
 
 Folder layout: see "A synthetic scene folder" in ``docs/ARCHITECTURE.md``.
 
@@ -66,10 +67,12 @@ WORLD_OFFSET = (12.0, -8.0, 30.0)
 SPHERE_MARGIN = 1.1
 #: Camera distance range in sphere radii (DTU: about 4.1).
 DISTANCE_RANGE = (3.9, 4.4)
+#: Elevation range of the camera cap, degrees above the horizontal (views from above).
+ELEVATION_DEG = (20.0, 70.0)
 #: Azimuth range of the camera cap, degrees (360: all around the object).
 AZIMUTH_SPAN = 360.0
 #: Default marching-cubes voxel (world units) of the ground-truth mesh, per built-in.
-GT_VOXEL = {"demo": 1.5, "pits-and-thin": 0.8}
+GT_VOXEL = {"demo": 1.5, "pits-and-thin": 0.8, "pits-deep": 0.8}
 #: Rays per render batch (bounded memory; several views share one batch).
 RAYS_PER_BATCH = 2_500_000
 #: Peak bytes per ray of a render batch: the measured peak with a margin
@@ -248,7 +251,8 @@ def make_scene(scene: str, out: str | Path, views: int = 49, width: int = 400,
     """Render a synthetic NeuS-format scene with exact ground truth into `out`.
 
     Args:
-        scene: a built-in name (``demo``, ``pits-and-thin``) or a mesh file path.
+        scene: a built-in name (``demo``, ``pits-and-thin``, ``pits-deep``) or a mesh
+            file path.
         out: output folder: new, empty, or a synthetic scene, which is replaced whole
             (written into a temporary folder next to it and swapped in at the end).
         views, width, height: number of cameras and image size.
@@ -485,7 +489,8 @@ def _camera_rig(verts: np.ndarray, views: int, width: int, height: int, seed: in
     centre = 0.5 * (verts.min(0) + verts.max(0))
     radius = SPHERE_MARGIN * float(np.linalg.norm(verts - centre, axis=1).max())
     dist = (DISTANCE_RANGE[0] * radius, DISTANCE_RANGE[1] * radius)
-    eyes = cap_centres(views, centre, dist, azimuth_span_deg=azimuth_span, seed=seed)
+    eyes = cap_centres(views, centre, dist, ELEVATION_DEG, azimuth_span_deg=azimuth_span,
+                       seed=seed)
     K = intrinsics_to_fit(width, height, radius, dist[0], fill=1.0)
     w2c = np.stack([look_at(e, centre) for e in eyes])
     return _Rig(centre, radius, sphere_scale_mat(centre, radius), dist, K, np.linalg.inv(w2c),
@@ -563,7 +568,7 @@ def _make_scene(scene, out, views, width, height, seed, spp, gt_voxel, point_spa
             "world_units": "millimetres (DTU-like)",
             "sphere": {"center": rig.centre.tolist(), "radius": rig.radius,
                        "margin": SPHERE_MARGIN},
-            "cameras": {"elevation_deg": [20.0, 70.0], "azimuth_span_deg": AZIMUTH_SPAN,
+            "cameras": {"elevation_deg": list(ELEVATION_DEG), "azimuth_span_deg": AZIMUTH_SPAN,
                         "distance": list(rig.dist), "focal": float(rig.K[0, 0]),
                         "intrinsics": rig.K.tolist(), "c2w_world": rig.c2w.tolist()},
             "gt_points": {"count": int(len(pts)), "spacing": point_spacing},

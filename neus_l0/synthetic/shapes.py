@@ -13,8 +13,10 @@ are, in the same frame.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 
 Tensor = torch.Tensor
@@ -201,8 +203,41 @@ def demo_shape() -> BuiltinShape:
                         "horn (r 17) and a knob")
 
 
-def pits_and_thin_shape() -> BuiltinShape:
-    """A slab with pits of several widths/depths, a cone pit, rods and fins of several radii."""
+#: The deep pit of ``pits_and_thin_shape(deep_pit=True)``: centre (x, y), radius, depth
+#: (as deep as it is wide), and its rods: (x, y) offsets from the pit's axis, radius, height.
+DEEP_PIT = ((-5.0, -15.0), 18.0, 36.0)
+DEEP_PIT_RODS = (((0.0, 11.0), 1.5, 28.0), ((-9.5, -5.5), 3.0, 28.0), ((9.5, -5.5), 5.0, 28.0))
+#: Radius of the deep pit's floor feature: the floor's centre, clear of the rods.
+DEEP_FLOOR_RADIUS = 5.5
+
+
+def deep_pit_parts(top: float) -> tuple[CappedCone, list[CappedCone], list[dict]]:
+    """The deep pit into a top face at height `top`, the rods standing on its floor, and
+    their features: the whole pit, its floor (a ball of `DEEP_FLOOR_RADIUS` on the floor's
+    centre, clear of the rods) and each rod (world units, z up).
+
+    Returns:
+        (cutter, rods, features).
+    """
+    (x, y), r, depth = DEEP_PIT
+    cutter, pit = _pit(x, y, top, r, depth, name=f"deep pit r{r:g} d{depth:g}")
+    pit["radius"] = float(np.hypot(r, depth / 2))  # the ball holds the wall, floor and rim
+    floor = {"kind": "pit", "name": "deep pit floor", "center": [x, y, top - depth],
+             "radius": DEEP_FLOOR_RADIUS, "axis": [0.0, 0.0, 1.0]}
+    rods, feats = [], [pit, floor]
+    for (dx, dy), rr, h in DEEP_PIT_RODS:
+        rod, f = _rod(x + dx, y + dy, top - depth, h, rr, name=f"deep pit rod r{rr:g}")
+        rods.append(rod)
+        feats.append(f)
+    return cutter, rods, feats
+
+
+def pits_and_thin_shape(deep_pit: bool = False) -> BuiltinShape:
+    """A slab with pits of several widths/depths, a cone pit, rods and fins of several radii.
+
+    With `deep_pit` (the built-in ``pits-deep``) the slab also has a pit as deep as it is
+    wide (`DEEP_PIT`) with thin rods standing on its floor (`DEEP_PIT_RODS`), below the rim.
+    """
     top = 25.0
     body = Box((0.0, 0.0, 0.0), (100.0, 70.0, top), rounding=3.0)
     cutters, feats = [], []
@@ -219,7 +254,11 @@ def pits_and_thin_shape() -> BuiltinShape:
     cutters.append(Box((-55.0, -5.0, top), (30.0, 3.0, 20.0)))
     feats.append({"kind": "pit", "name": "slot w6 d20", "center": [-55.0, -5.0, top - 10.0],
                   "radius": 30.0, "axis": [0.0, 0.0, 1.0]})
-    parts = [Difference(body, tuple(cutters))]
+    deep_rods, deep_feats = [], []
+    if deep_pit:
+        c, deep_rods, deep_feats = deep_pit_parts(top)
+        cutters.append(c)
+    parts = [Difference(body, tuple(cutters)), *deep_rods]
     # thin rods standing on the top face
     for i, r in enumerate([1.0, 2.0, 3.5, 6.0]):
         rod, f = _rod(-75.0 + 35.0 * i, -45.0, top, 55.0, r, name=f"rod r{r:g}")
@@ -231,15 +270,20 @@ def pits_and_thin_shape() -> BuiltinShape:
         parts.append(Box((35.0, y, top + 20.0), (18.0, th / 2, 21.0)))
         feats.append({"kind": "thin", "name": f"fin t{th:g}", "center": [35.0, y, top + 20.0],
                       "radius": 25.0, "axis": [0.0, 1.0, 0.0]})
-    return BuiltinShape("pits-and-thin", Union(tuple(parts)), feats,
-                        ((-102.0, -72.0, -27.0), (102.0, 72.0, 82.0)),
+    feats.extend(deep_feats)  # last: the other features keep their order
+    deep = ("; a deep pit r 18 depth 36 with rods r 1.5/3/5 (28 tall) on its floor"
+            if deep_pit else "")
+    return BuiltinShape("pits-deep" if deep_pit else "pits-and-thin", Union(tuple(parts)),
+                        feats, ((-102.0, -72.0, -27.0), (102.0, 72.0, 82.0)),
                         "slab 200x140x50 with 5 cylindrical pits (r 3..18, depth 12..40), a "
-                        "cone pit, a slot, rods r 1/2/3.5/6 (55 tall) and fins 1.5/4 thick")
+                        "cone pit, a slot, rods r 1/2/3.5/6 (55 tall) and fins 1.5/4 thick"
+                        + deep)
 
 
 BUILTIN_SHAPES: dict[str, Callable[[], BuiltinShape]] = {
     "demo": demo_shape,
     "pits-and-thin": pits_and_thin_shape,
+    "pits-deep": functools.partial(pits_and_thin_shape, deep_pit=True),
 }
 
 

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from neus_l0.atomic import atomic_write_json, atomic_write_text, remove_orphans
-from neus_l0.bounds.pixel_pool import reachable_pixels
+from neus_l0.bounds.pixel_pool import reachable_pixels, with_error_map
 from neus_l0.bounds.static import cameras_inside_warning, static_bounds
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.config.schema import Config
@@ -177,8 +177,9 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     run.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
     run.setup.bounds = static_bounds(scene, cfg, run_dir / "hull.pt",
                                      reuse=latest_checkpoint(run_dir) is not None)
-    run.setup.pool = reachable_pixels(scene, cfg.render, run.setup.bounds,
-                                       background=model.background is not None)
+    run.setup.pool = with_error_map(
+        reachable_pixels(scene, cfg.render, run.setup.bounds,
+                         background=model.background is not None), scene, cfg)
     run.setup.compiled = compiled_step(render_and_loss, cfg, device)
     if state is not None:
         run.iteration, rays = restore_training(ckpt, state, model, run.optimizer,

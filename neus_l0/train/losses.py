@@ -30,6 +30,34 @@ def color_l1(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     return ((pred - target).abs() * mask).sum() / (mask.sum() + 1e-5)
 
 
+def weighted_color_l1(pred: Tensor, target: Tensor, mask: Tensor, weight: Tensor,
+                      foreground: float) -> Tensor:
+    """The colour term of rays drawn by an error map, each weighted by 1 / (P p).
+
+    ``sum(w * |pred - target|_1 * mask) / (B * foreground)``: with weights of the draw, its
+    expectation is the pool's masked mean colour error (``sum_j l_j m_j / sum_j m_j``, with
+    ``foreground`` = sum_j m_j / P), which `color_l1` estimates under uniform draws.
+
+    Args:
+        pred, target: (B, 3); mask: (B, 1) in {0, 1}; weight: (B,) importance weights;
+        foreground: the pool's share of foreground pixels, > 0.
+
+    Returns:
+        () loss.
+    """
+    per_ray = (pred - target).abs().sum(-1) * mask[:, 0]  # (B,)
+    return (weight * per_ray).sum() / (pred.shape[0] * foreground)
+
+
+def ray_errors(out: RenderOutput, target_rgb: Tensor, mask: Tensor, use_mask: bool) -> Tensor:
+    """(B,) each ray's error for the error map: its colour L1 where the mask is on, plus
+    |opacity - mask| when the run uses masks (detached)."""
+    err = (out.color - target_rgb).abs().sum(-1) * mask[:, 0]
+    if use_mask:
+        err = err + (out.weight_sum[:, 0] - mask[:, 0]).abs()
+    return err.detach()
+
+
 def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     """PSNR (dB) over the masked pixels.
 
@@ -43,11 +71,12 @@ def masked_psnr(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     return -10.0 * torch.log10(mse.clamp_min(1e-10))
 
 
-def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
+def mask_bce(weight_sum: Tensor, mask: Tensor, weight: Tensor | None = None) -> Tensor:
     """Binary cross-entropy between the accumulated opacity and the mask.
 
     Args:
         weight_sum: (B, 1) opacity along each ray; mask: (B, 1) in {0, 1}.
+        weight: (B,) per-ray weights of the mean (None: the plain mean).
 
     Returns:
         () loss.
@@ -55,7 +84,7 @@ def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
     # F.binary_cross_entropy raises on a NaN input; a NaN opacity is a diverged run, which
     # the colour loss shows as NaN too and the loop's watchdog stops, so it is read as 0.5
     p = torch.nan_to_num(weight_sum, nan=0.5).clip(1e-3, 1.0 - 1e-3)
-    return F.binary_cross_entropy(p, mask)
+    return F.binary_cross_entropy(p, mask, weight=None if weight is None else weight[:, None])
 
 
 def eikonal(gradients: Tensor, mask: Tensor) -> Tensor:
@@ -81,7 +110,8 @@ def eikonal_indices(n: int, fraction: float, generator: torch.Generator | None,
 def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainConfig,
               generator: torch.Generator | None = None,
               mask_scale: float | Tensor = 1.0,
-              eikonal_idx: Tensor | None = None) -> dict[str, Tensor]:
+              eikonal_idx: Tensor | None = None, ray_weight: Tensor | None = None,
+              foreground: float = 1.0) -> dict[str, Tensor]:
     """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE.
 
     Args:
@@ -96,19 +126,27 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
             constant without gradient; drawing only from the others and scaling by that
             fraction keeps NeuS's expected gradient.
         eikonal_idx: the Eikonal subset's indices drawn beforehand (`eikonal_indices`).
+        ray_weight: (B,) importance weights of rays drawn by an error map
+            (`neus_l0.bounds.error_map`): the colour term is `weighted_color_l1` and the
+            mask term the weighted mean of the rays' BCE, so both keep the pool's
+            expectation; the Eikonal term (over samples) is not weighted. None: uniform.
+        foreground: the pool's share of foreground pixels (with `ray_weight`).
 
     Returns:
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
         ``psnr``.
     """
-    color = color_l1(out.color, target_rgb, mask)
+    if ray_weight is None:
+        color = color_l1(out.color, target_rgb, mask)
+    else:
+        color = weighted_color_l1(out.color, target_rgb, mask, ray_weight, foreground)
     if cfg.eikonal_fraction < 1.0:
         eik = eikonal_subset(out.gradients, out.eikonal_mask, cfg.eikonal_fraction, generator,
                              eikonal_idx)
     else:
         eik = eikonal(out.gradients, out.eikonal_mask)
     if cfg.mask_weight > 0:
-        mloss = mask_bce(out.weight_sum, mask)
+        mloss = mask_bce(out.weight_sum, mask, ray_weight)
     else:
         mloss = torch.zeros_like(color)
     loss = color + cfg.igr_weight * eik + cfg.mask_weight * mask_scale * mloss

@@ -15,6 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from neus_l0.bounds.error_map import draw, refresh_table, update_errors
 from neus_l0.bounds.occupancy import OccupancyGrid
 from neus_l0.bounds.pixel_pool import PixelPool
 from neus_l0.bounds.spans import RayBounds, join_bounds
@@ -25,7 +26,7 @@ from neus_l0.fields.linear import clear_weight_cache
 from neus_l0.fields.model import NeuSModel
 from neus_l0.render.volume import RenderNoise, draw_noise, render_rays
 from neus_l0.sampling.upsample import Sampler, build_sampler
-from neus_l0.train.losses import LOSS_NAMES, eikonal_indices, neus_loss
+from neus_l0.train.losses import LOSS_NAMES, eikonal_indices, neus_loss, ray_errors
 from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
 #: A step's metrics, in the order of `render_and_loss`'s metrics tensor: the losses, then
@@ -126,6 +127,9 @@ class StepInputs:
         mask_scale: the pixel pool's fraction (1: rays drawn from every pixel).
         span: (B, 4) the rays' bounds under the run's static bounds, looked up in the pixel
             pool (`PixelPool.spans`), or None (the step computes them).
+        pick: (B,) the rays' pool indices when the pool's error map drew them (None: off).
+        ray_weight: (B,) their importance weights 1 / (P p) (None: uniform draws).
+        foreground: the pool's share of foreground pixels (with `ray_weight`).
     """
 
     origins: Tensor
@@ -137,16 +141,28 @@ class StepInputs:
     anneal: Tensor | float
     mask_scale: float
     span: Tensor | None = None
+    pick: Tensor | None = None
+    ray_weight: Tensor | None = None
+    foreground: float = 1.0
+
+
+def _draw_pool(pool: PixelPool, n_rays: int, generator: torch.Generator,
+               device: torch.device) -> tuple[Tensor, Tensor | None]:
+    """(n_rays,) pool indices, uniform or from the pool's error map, and their importance
+    weights (None: uniform)."""
+    if pool.error_map is None:
+        return random_picks(pool.pixels.shape[0], n_rays, generator, device), None
+    return draw(pool.error_map, n_rays, generator)
 
 
 def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
                      generator: torch.Generator, pool: PixelPool | None) -> StepInputs:
     """Draw one step's rays and random numbers (`StepInputs`), in a fixed order."""
-    span = None
+    span = pick = weight = None
     if pool is None:
         batch, mask_scale = random_rays(scene, n_rays, generator), 1.0
     else:
-        pick = random_picks(pool.pixels.shape[0], n_rays, generator, scene.device)
+        pick, weight = _draw_pool(pool, n_rays, generator, scene.device)
         batch, mask_scale = rays_at(scene, pool.pixels[pick]), pool.fraction
         span = pool.spans[pick] if pool.spans is not None else None
     r = cfg.render
@@ -161,26 +177,33 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
     anneal = (1.0 if cfg.train.anneal_end <= 0 else
               torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
                            device=scene.device))
+    emap = pool.error_map if pool is not None else None
     return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
-                      anneal, mask_scale, span)
+                      anneal, mask_scale, span, pick if emap is not None else None, weight,
+                      emap.foreground if emap is not None else 1.0)
 
 
 def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: Sampler,
-                    bounds: tuple[RayBounds, ...]) -> tuple[Tensor, Tensor]:
+                    bounds: tuple[RayBounds, ...]) -> tuple[Tensor, Tensor, Tensor | None]:
     """Render a step's rays and compute its loss (what `train.compile` compiles).
 
     Returns:
-        the loss () and the step's metrics (len(METRIC_NAMES),), detached.
+        the loss (), the step's metrics (len(METRIC_NAMES),), detached, and the rays' (B,)
+        errors for the pool's error map (`neus_l0.train.losses.ray_errors`; None when the
+        rays were drawn uniformly).
     """
     with autocast(cfg, inputs.origins.device):
         out = render_rays(model, inputs.origins, inputs.dirs, cfg.render, sampler,
                           cos_anneal_ratio=inputs.anneal, create_graph=True, bounds=bounds,
                           noise=inputs.noise, span=inputs.span)
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
-                       eikonal_idx=inputs.eikonal_idx)
+                       eikonal_idx=inputs.eikonal_idx, ray_weight=inputs.ray_weight,
+                       foreground=inputs.foreground)
     samples = out.active.sum() * out.t.shape[1]
     values = [losses[k] for k in LOSS_NAMES] + [out.inv_s, samples]  # () each, METRIC_NAMES
-    return losses["loss"], torch.stack(values).detach().float()  # stack promotes the count
+    errors = (None if inputs.ray_weight is None else
+              ray_errors(out, inputs.rgb, inputs.mask, cfg.train.mask_weight > 0))
+    return losses["loss"], torch.stack(values).detach().float(), errors  # stack: the count
 
 
 @dataclasses.dataclass
@@ -190,7 +213,8 @@ class StepSetup:
     Attributes:
         bounds: what narrows the rays besides the sphere (a visual hull), before the grid.
         sampler: the up-sampling draw (None: the config's).
-        pool: draw the rays from these pixels only (`neus_l0.bounds.pixel_pool`; None: from all).
+        pool: draw the rays from these pixels only (`neus_l0.bounds.pixel_pool`; None: from
+            all), by its error map when it has one.
         compiled: a compiled `render_and_loss` (`neus_l0.train.compile`; None: eager).
     """
 
@@ -231,6 +255,9 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     # learning rate, batch and random numbers, grid update
     setup = setup or StepSetup()
     set_learning_rate(optimizer, cfg, iteration)
+    emap = setup.pool.error_map if setup.pool is not None else None
+    if emap is not None and iteration % cfg.train.log_every == 0:
+        refresh_table(emap)  # the draw table follows the map at log steps
     inputs = draw_step_inputs(scene, cfg, iteration, batch_size or cfg.train.batch_size,
                               generator, setup.pool)
     update_occupancy(occupancy, model, cfg, iteration)
@@ -240,7 +267,9 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     # render and loss
     step_fn = setup.compiled or render_and_loss
     sampler = build_sampler(cfg.sampler) if setup.sampler is None else setup.sampler
-    loss, metrics = step_fn(model, inputs, cfg, sampler, bounds)
+    loss, metrics, errors = step_fn(model, inputs, cfg, sampler, bounds)
+    if emap is not None and errors is not None:
+        update_errors(emap, inputs.pick, errors)
     # backward and update
     _drop_grads(optimizer)
     if scaler is not None and scaler.is_enabled():

@@ -1,0 +1,255 @@
+"""Where the deep pit's error can come from, measured outside training (issue #35).
+
+Usage:
+    python tools/diagnose_pits.py SCENE [--conf demo] [--rays 96] [--budgets 16+16,32+32]
+                                  [--out diag.json] [--train-seconds S --fraction F
+                                  --tile T]
+
+SCENE is a `pits-deep` folder (``neus-l0 synth pits-deep SCENE``). Every pixel's first true
+hit (``gt_depth.npz``) is labelled by the exact geometry of the deep pit
+(`neus_l0.synthetic.shapes.DEEP_PIT`): pit floor, pit wall, rods standing in the pit, open
+surface (everything else the object shows), or nothing. Per label it prints:
+
+- the share of the training pixel pool (`neus_l0.bounds.pixel_pool.reachable_pixels` under
+  the config's static bounds, as a run builds it) and, times ``train.batch_size``, the rays
+  a step draws there (uniform draws over the pool, `neus_l0.train.step.draw_step_inputs`);
+- how many views see it (at least one pixel; at least 20 pixels) and its pixels per view;
+- where NeuS's fine samples land on up to `--rays` pool rays of that label, per sampler
+  (hvs, l0) and budget: the up-sampling run on the exact SDF at NeuS's fixed sharpness
+  (`neus_l0.experiments.oracle`, training-like: the rays' own spans), scored against the
+  exact first hit: the share within 0.003 and 0.01 (normalised units) of it, the share of
+  rays with none within 0.01, and the share of samples that sit on the surface (|SDF| <
+  0.01) before the hit: rays grazing the rim or a rod on their way to the floor.
+
+With ``--train-seconds S`` it also trains the config for S seconds (one thread, eager) with
+``train.error_map.fraction`` `--fraction` and tiles of `--tile` pixels, and prints at each
+log step the rays a step draws per label under the map's table and the mean running error
+of the label's pixels: whether the map finds the pit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from neus_l0.bounds.pixel_pool import reachable_pixels
+from neus_l0.bounds.sphere import near_far_from_sphere
+from neus_l0.bounds.static import static_bounds
+from neus_l0.config.load import load_config
+from neus_l0.config.schema import SamplerConfig
+from neus_l0.data.rays import rays_at
+from neus_l0.experiments.oracle import first_hit
+from neus_l0.formats.neus import load_scene
+from neus_l0.render.volume import coarse_z_vals
+from neus_l0.sampling.upsample import build_sampler, up_sample
+from neus_l0.synthetic.scene import WORLD_OFFSET
+from neus_l0.synthetic.shapes import DEEP_PIT, DEEP_PIT_RODS, Translated, builtin_shape
+from neus_l0.train.callbacks import TrainingCallback
+from neus_l0.train.loop import train
+
+LABELS = ("nothing", "open surface", "pit wall", "pit floor", "rods")
+#: World-unit tolerance of the labels (about a pixel's footprint at 400x300).
+TOL = 1.0
+SAMPLERS = {"hvs": SamplerConfig(name="hvs"), "l0": SamplerConfig(name="l0")}
+
+
+def hit_points(root: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(V, H, W, 3) world first hits of every pixel's centre ray (NaN on misses) and the
+    (V, H, W) depth maps."""
+    meta = json.loads((root / "scene.json").read_text())
+    K = np.asarray(meta["cameras"]["intrinsics"])
+    c2w = np.asarray(meta["cameras"]["c2w_world"])  # (V, 4, 4)
+    with np.load(root / "gt_depth.npz") as f:
+        depth = np.stack([f[f"depth_{i}"] for i in range(len(c2w))])  # (V, H, W)
+    H, W = depth.shape[1:]
+    xs, ys = np.meshgrid(np.arange(W), np.arange(H))
+    cam = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T  # (H, W, 3), z = 1
+    d = np.where(np.isfinite(depth), depth, np.nan)[..., None]
+    pts = np.einsum("vij,vhwj->vhwi", c2w[:, :3, :3], cam[None] * d) + c2w[:, None, None, :3, 3]
+    return pts, depth
+
+
+def label(pts: np.ndarray) -> np.ndarray:
+    """(...,) int labels (`LABELS` indices) of (..., 3) world points (NaN: nothing)."""
+    (px, py), r, depth = DEEP_PIT
+    ox, oy, oz = WORLD_OFFSET
+    top, floor = 25.0 + oz, 25.0 + oz - depth
+    x, y, z = pts[..., 0] - px - ox, pts[..., 1] - py - oy, pts[..., 2]
+    rho = np.hypot(x, y)
+    out = np.where(np.isnan(z), 0, 1)
+    inside = (rho < r + TOL) & (z < top - TOL) & (z > floor - TOL)
+    out = np.where(inside & (np.abs(rho - r) <= TOL), 2, out)
+    out = np.where(inside & (np.abs(z - floor) <= TOL) & (rho < r - TOL), 3, out)
+    for (dx, dy), rr, h in DEEP_PIT_RODS:
+        on_rod = (np.hypot(x - dx, y - dy) <= rr + TOL) & (z > floor + TOL) & (z <= floor + h
+                                                                                + TOL)
+        out = np.where(on_rod, 4, out)
+    return out
+
+
+def view_table(labels: np.ndarray, pool_labels: np.ndarray, batch: int) -> list[dict]:
+    """Per label: pool share, rays a step, views seeing it, pixels per seeing view."""
+    rows = []
+    for k, name in enumerate(LABELS):
+        per_view = (labels == k).reshape(labels.shape[0], -1).sum(-1)
+        share = float((pool_labels == k).mean())
+        seen = per_view[per_view > 0]
+        rows.append({"feature": name, "pool_share": share, "rays_per_step": share * batch,
+                     "views_1px": int((per_view > 0).sum()),
+                     "views_20px": int((per_view >= 20).sum()),
+                     "px_per_seeing_view": float(np.median(seen)) if len(seen) else 0.0})
+    return rows
+
+
+class NormalisedSdf:
+    """The scene's exact SDF in NeuS's normalised frame: ``f(S x + c) / s``."""
+
+    def __init__(self, scale_mat: np.ndarray):
+        shape = builtin_shape("pits-deep")
+        self.sdf = Translated(shape.sdf, WORLD_OFFSET)
+        self.s = float(scale_mat[0, 0])
+        self.c = torch.as_tensor(scale_mat[:3, 3], dtype=torch.float64)
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        return self.sdf(x.double() * self.s + self.c) / self.s
+
+
+def fine_sample_row(sdf, rays: dict, span: torch.Tensor, hit: torch.Tensor,
+                    budget: tuple[int, int, int], cfg: SamplerConfig) -> dict:
+    """Where one sampler's fine samples land on (B,) rays with exact first hits `hit`."""
+    n_samples, n_importance, rounds = budget
+    o, d = rays["origins"].float(), rays["dirs"].float()
+    g = torch.Generator().manual_seed(0)
+    z = coarse_z_vals(span[:, :1], span[:, 1:2], n_samples, perturb=True, generator=g)
+    _, z_new = up_sample(sdf, o, d, z, build_sampler(cfg), n_importance, rounds)
+    dist = (z_new.double() - hit[:, None]).abs()  # (B, n_importance)
+    pts = o.double()[:, None] + d.double()[:, None] * z_new.double()[..., None]
+    f = sdf(pts.reshape(-1, 3)).reshape(z_new.shape).abs()
+    before = (z_new.double() < hit[:, None] - 0.01) & (f < 0.01)
+    return {"within_0.003": float((dist <= 0.003).double().mean()),
+            "within_0.01": float((dist <= 0.01).double().mean()),
+            "rays_missed": float((dist > 0.01).all(-1).double().mean()),
+            "on_surface_before_hit": float(before.double().mean())}
+
+
+def sample_table(scene, pool, pool_labels: np.ndarray, n_rays: int,
+                 budgets: list[tuple[int, int, int]]) -> list[dict]:
+    """`fine_sample_row` per label (not `nothing`), budget and sampler."""
+    sdf = NormalisedSdf(np.asarray(scene.scale_mat))
+    rng = np.random.default_rng(0)
+    rows = []
+    for k, name in enumerate(LABELS[1:], start=1):
+        idx = np.nonzero(pool_labels == k)[0]
+        idx = torch.as_tensor(rng.choice(idx, min(n_rays, len(idx)), replace=False))
+        if len(idx) == 0:
+            continue
+        rays = rays_at(scene, pool.pixels[idx])
+        if pool.spans is not None:
+            span = pool.spans[idx]
+        else:
+            span = torch.cat(near_far_from_sphere(rays["origins"], rays["dirs"]), -1)
+        hit = first_hit(sdf, rays["origins"].double(), rays["dirs"].double(), n=4001)
+        ok = torch.isfinite(hit)
+        rays = {key: v[ok] for key, v in rays.items()}
+        for budget in budgets:
+            for sname, cfg in SAMPLERS.items():
+                row = {"feature": name, "rays": int(ok.sum()),
+                       "budget": f"{budget[0]}+{budget[1]}", "sampler": sname}
+                row.update(fine_sample_row(sdf, rays, span[ok], hit[ok], budget, cfg))
+                rows.append(row)
+    return rows
+
+
+class _RaysWhereTheMapDraws(TrainingCallback):
+    """At each log step: the rays a step draws per label under the error map's table, and
+    the mean running error of the label's pixels (their tiles')."""
+
+    def __init__(self, labels: np.ndarray, batch: int):
+        self.labels, self.batch, self.rows = labels, batch, []
+
+    def on_log(self, run, metrics: dict) -> None:
+        pool = run.setup.pool
+        prob = pool.error_map.prob.double().cpu().numpy()
+        lab = self.labels[pool.pixels.cpu().numpy()]
+        row = {"iteration": run.iteration, "loss": metrics.get("loss", float("nan"))}
+        row.update({name: float(prob[lab == k].sum()) * self.batch
+                    for k, name in enumerate(LABELS)})
+        err = pool.error_map.error[pool.error_map.tile].cpu().numpy()
+        row.update({f"err {name}": float(err[lab == k].mean()) if (lab == k).any() else 0.0
+                    for k, name in enumerate(LABELS)})
+        self.rows.append(row)
+
+
+def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float, fraction: float,
+                  tile: int = 8) -> list[dict]:
+    """Train config `conf` with ``train.error_map.fraction`` for `seconds` (one thread, eager)
+    and return the rays a step draws per label at each log step (the table rebuilt there)."""
+    cfg = load_config(conf, [f"train.error_map.fraction={fraction}",
+                             f"train.error_map.tile={tile}",
+                                f"train.max_seconds={seconds}", "train.compile=false",
+                                "train.threads=1", "train.val_every=0", "train.save_every=0",
+                                "train.tensorboard=false", "train.log_every=100"])
+    cb = _RaysWhereTheMapDraws(labels.reshape(-1), cfg.train.batch_size)
+    with tempfile.TemporaryDirectory() as tmp:
+        train(scene, cfg, Path(tmp) / "run", progress=False, callbacks=[cb])
+    return cb.rows
+
+
+def _markdown(rows: list[dict]) -> str:
+    keys = list(rows[0])
+
+    def fmt(v):
+        return f"{v:.3g}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(fmt(r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("--conf", default="demo")
+    ap.add_argument("--rays", type=int, default=96, help="rays per feature for the samples")
+    ap.add_argument("--budgets", default="16+16,32+32")
+    ap.add_argument("--out", type=Path, default=None, help="write the tables as JSON")
+    ap.add_argument("--train-seconds", type=float, default=0.0,
+                    help="also train this long with the error map on and report where it "
+                         "draws (0: no training)")
+    ap.add_argument("--fraction", type=float, default=0.5, help="train.error_map.fraction")
+    ap.add_argument("--tile", type=int, default=8, help="train.error_map.tile")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cfg = load_config(args.conf)
+    scene = load_scene(args.scene)
+    with tempfile.TemporaryDirectory() as tmp:
+        bounds = static_bounds(scene, cfg, Path(tmp) / "hull.pt")
+    pool = reachable_pixels(scene, cfg.render, bounds)
+    pts, _ = hit_points(args.scene)
+    labels = label(pts)  # (V, H, W)
+    pool_labels = labels.reshape(-1)[pool.pixels.numpy()]
+    views = view_table(labels, pool_labels, cfg.train.batch_size)
+    print(f"pool: {pool.pixels.numel()} pixels ({pool.fraction:.3f} of all), batch "
+          f"{cfg.train.batch_size}\n{_markdown(views)}\n")
+    budgets = [(int(a), int(b), 2) for a, b in (s.split("+") for s in args.budgets.split(","))]
+    samples = sample_table(scene, pool, pool_labels, args.rays, budgets)
+    print(_markdown(samples))
+    drawn = []
+    if args.train_seconds > 0:
+        drawn = error_map_run(scene, args.conf, labels, args.train_seconds, args.fraction,
+                              args.tile)
+        print(f"\nrays a step draws per feature, error map fraction {args.fraction}, tile "
+              f"{args.tile}\n"
+              f"{_markdown(drawn)}")
+    if args.out:
+        args.out.write_text(json.dumps({"views": views, "samples": samples, "error_map": drawn},
+                                       indent=1))
+
+
+if __name__ == "__main__":
+    main()

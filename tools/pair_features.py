@@ -1,0 +1,84 @@
+"""Pair two `neus-l0 bench` sweeps run by run (a remedy off, then on) on the total Chamfer
+and on every feature's error, with the exact sign test.
+
+Usage:
+    python tools/pair_features.py OFF_DIR ON_DIR [--metric overall|completeness|accuracy]
+
+Both sweeps ran the same scenes, samplers, budgets and seeds (so their run folders share
+names, ``OFF_DIR/runs/NAME`` against ``ON_DIR/runs/NAME``) and differ in one setting, e.g.
+``train.error_map.fraction=0.5``. Each run's ``eval.json`` holds its Chamfer report with the
+per-feature errors of a synthetic scene (`neus_l0.evaluation.features`). Prints, per scene
+and feature (and ``total``, ``all pits``, ``all thins``: the pooled kinds, also over every
+scene together): the mean error off and on, their ratio, the pairs the remedy
+won (lower error) of those not tied, and the two-sided sign test's p
+(`neus_l0.evaluation.paired.sign_test_p`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+from neus_l0.evaluation.paired import sign_test_p
+
+
+def run_errors(eval_json: Path, metric: str) -> tuple[str, dict[str, float]]:
+    """(scene name, {"total" | feature name: error}) of one run's ``eval.json``."""
+    rec = json.loads(eval_json.read_text())
+    chamfer = rec.get("chamfer") or {}
+    scene = Path(rec["spec"]["scene_dir"]).name
+    out = {"total": chamfer.get(metric, math.nan)}
+    feats = chamfer.get("features") or {}
+    for f in feats.get("each", []):
+        out[f["name"]] = f.get(metric, math.nan)
+    for kind, f in (feats.get("by_kind") or {}).items():
+        out[f"all {kind}s"] = f.get(metric, math.nan)
+    return scene, {k: float(v) if v is not None else math.nan for k, v in out.items()}
+
+
+def paired_rows(off: Path, on: Path, metric: str) -> list[dict]:
+    """One row per (scene, feature): means, ratio, wins, n and the sign test's p."""
+    pairs: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
+    for a in sorted(off.glob("runs/*/eval.json")):
+        b = on / "runs" / a.parent.name / "eval.json"
+        if not b.is_file():
+            continue
+        scene, ea = run_errors(a, metric)
+        _, eb = run_errors(b, metric)
+        for name in ea.keys() & eb.keys():
+            if math.isfinite(ea[name]) and math.isfinite(eb[name]):
+                pairs[(scene, name)].append((ea[name], eb[name]))
+                if name == "total" or name.startswith("all "):
+                    pairs[("every scene", name)].append((ea[name], eb[name]))
+    rows = []
+    for (scene, name), vals in sorted(pairs.items()):
+        wins = sum(b < a for a, b in vals)
+        n = sum(b != a for a, b in vals)
+        mean_off = sum(a for a, _ in vals) / len(vals)
+        mean_on = sum(b for _, b in vals) / len(vals)
+        rows.append({"scene": scene, "feature": name, "pairs": len(vals), "off": mean_off,
+                     "on": mean_on, "on/off": mean_on / mean_off if mean_off else math.nan,
+                     "wins": f"{wins}/{n}", "p": sign_test_p(wins, n)})
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("off", type=Path, help="the sweep with the remedy off")
+    ap.add_argument("on", type=Path, help="the sweep with the remedy on")
+    ap.add_argument("--metric", default="overall",
+                    choices=("overall", "completeness", "accuracy"))
+    args = ap.parse_args()
+    rows = paired_rows(args.off, args.on, args.metric)
+    print("| scene | feature | pairs | off | on | on/off | remedy wins | sign test p |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['scene']} | {r['feature']} | {r['pairs']} | {r['off']:.3f} | "
+              f"{r['on']:.3f} | {r['on/off']:.2f} | {r['wins']} | {r['p']:.3f} |")
+
+
+if __name__ == "__main__":
+    main()
