@@ -71,6 +71,14 @@ class RunState:
     protect_snapshots: bool = False
     good_checkpoint: Path | None = None  # while the watchdog suspects the run
     diverged: bool = False
+    stop_requested: bool = False  # a callback asks the loop to stop (a budget's deadline)
+
+    @property
+    def end(self) -> int:
+        """The iteration the run ends at: `train.iters`, or sooner when a budget run
+        compressed its schedule (`StepSetup.warp`)."""
+        warp = self.setup.warp
+        return warp.end if warp is not None else self.cfg.train.iters
 
     @property
     def device(self) -> torch.device:
@@ -107,6 +115,8 @@ class RunState:
             "scale_mat": np.asarray(self.scene.scale_mat).tolist(),
             "has_background": self.model.background is not None,
         }
+        if self.setup.warp is not None and self.setup.warp.warped:
+            state["schedule"] = self.setup.warp.to_dict()
         if self.occupancy is not None:
             state["occupancy"] = self.occupancy.state_dict()
         if self.scaler.is_enabled():

@@ -25,6 +25,7 @@ from neus_l0.fields.linear import clear_weight_cache
 from neus_l0.fields.model import NeuSModel
 from neus_l0.render.volume import RenderNoise, draw_noise, render_rays
 from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.budget import ScheduleWarp
 from neus_l0.train.losses import eikonal_indices, neus_loss
 from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
@@ -77,7 +78,8 @@ def update_occupancy(grid: OccupancyGrid | None, model: NeuSModel, cfg: Config,
         grid.update(model.sdf.sdf, model.variance.inv_s())
 
 
-def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config, iteration: int) -> float:
+def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config,
+                      iteration: float) -> float:
     """Apply NeuS's schedule for `iteration` and return the learning rate."""
     t = cfg.train
     lr = t.lr * lr_factor(iteration, t.warm_up, t.iters, t.lr_alpha)
@@ -136,7 +138,7 @@ class StepInputs:
     span: Tensor | None = None
 
 
-def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
+def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
                      generator: torch.Generator, pool: PixelPool | None) -> StepInputs:
     """Draw one step's rays and random numbers (`StepInputs`), in a fixed order."""
     span = None
@@ -189,12 +191,25 @@ class StepSetup:
         sampler: the up-sampling draw (None: the config's).
         pool: draw the rays from these pixels only (`neus_l0.bounds.pixel_pool`; None: from all).
         compiled: a compiled `render_and_loss` (`neus_l0.train.compile`; None: eager).
+        warp: real iteration -> the recorded schedule's iteration, when a budget run
+            compressed the rest of its schedule (`neus_l0.train.budget.ScheduleWarp`;
+            None: the identity).
     """
 
     bounds: tuple = ()
     sampler: object = None
     pool: PixelPool | None = None
     compiled: Callable | None = None
+    warp: ScheduleWarp | None = None
+
+
+def set_level_steps(model: NeuSModel, steps: int) -> None:
+    """Set the hash grids' level counters (their schedule's iteration) to `steps`."""
+    from neus_l0.fields.encodings import HashGridEncoding
+
+    for m in model.modules():
+        if isinstance(m, HashGridEncoding) and m.start_level < m.n_levels:
+            m.steps.fill_(steps)
 
 
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
@@ -227,8 +242,12 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     """
     # learning rate, batch and random numbers, grid update
     setup = setup or StepSetup()
-    set_learning_rate(optimizer, cfg, iteration)
-    inputs = draw_step_inputs(scene, cfg, iteration, batch_size or cfg.train.batch_size,
+    at = iteration  # the schedule's iteration: the real one unless a budget compressed it
+    if setup.warp is not None and setup.warp.warped:
+        at = setup.warp.at(iteration)
+        set_level_steps(model, int(at))
+    set_learning_rate(optimizer, cfg, at)
+    inputs = draw_step_inputs(scene, cfg, at, batch_size or cfg.train.batch_size,
                               generator, setup.pool)
     update_occupancy(occupancy, model, cfg, iteration)
     # the static bounds are in the looked-up spans when the pool kept them
