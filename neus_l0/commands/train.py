@@ -140,12 +140,14 @@ def _fresh_config(conf: str | None, overrides: list[str], device: str, budget: f
     from neus_l0.train.budget import default_setting
 
     ladder: tuple[str, ...] = ()
-    if conf is None:
+    chosen = conf is None
+    if chosen:
         conf, ladder = default_setting(device, budget)
+    cfg = load_config(conf, [*ladder, *overrides])
+    if chosen:
         print(f"neus-l0 train: no --conf: {conf}, the {device} setting"
               + (f" with {' '.join(ladder)} for this budget" if ladder else "")
               + " (--conf wmask for NeuS's own)", file=sys.stderr, flush=True)
-    cfg = load_config(conf, [*ladder, *overrides])
     return with_budget(cfg, budget) if budget else cfg
 
 

@@ -27,8 +27,9 @@ from neus_l0.config.schema import Config
 
 #: Fraction of the time left for steps that the plan leaves unused (rate noise).
 MARGIN = 0.04
-#: Seconds kept for the end: the final checkpoint's measured cost is added to this.
-RESERVE_S = 1.0
+#: Seconds kept for the end besides the final checkpoint's measured cost: closing the run
+#: (events, budget.json) and the interpreter's exit with torch loaded.
+RESERVE_S = 3.0
 #: Fewest iterations a plan may have.
 MIN_ITERS = 20
 #: A slow-down shortens the schedule only when the rest would overrun by more than this.

@@ -70,6 +70,7 @@ from neus_l0.train.callbacks import (
 )
 from neus_l0.train.compile import compiled_step
 from neus_l0.train.compile_auto import resolve_compile
+from neus_l0.train.early_stop import EarlyStop
 from neus_l0.train.preflight import (
     check_same_scene,
     check_writable,
@@ -358,13 +359,14 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
 
 def _budget_callbacks(run: RunState, started: float, resume: bool) -> list[TrainingCallback]:
     """A budget run's plan and keeper (`neus_l0.train.budget_run`), else the duration
-    estimate."""
+    estimate; the early stop when `train.early_stop` is on."""
+    stop = [EarlyStop()] if run.cfg.train.early_stop else []
     if run.cfg.train.budget <= 0:
-        return [EstimateLine()]
+        return [EstimateLine(), *stop]
     if resume:
         raise ConfigError(f"train.budget={run.cfg.train.budget:g}: a resumed run keeps the "
                           "schedule its config.yaml recorded; resume without a budget")
-    return [plan_run(run, started)]
+    return [plan_run(run, started), *stop]
 
 
 def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
