@@ -148,14 +148,11 @@ class ScheduleWarp:
         """The recorded schedule's iteration at real `iteration` (`base` from `end` on)."""
         if not self.warped:
             return float(iteration)
-        prev = self.knots[0]
-        for knot in self.knots[1:]:
-            if iteration < knot[0]:
-                break
-            prev = knot
-        i0, v0 = prev
-        span = max(1, self.end - i0)
-        return min(float(self.base), v0 + (iteration - i0) * (self.base - v0) / span)
+        points = [*self.knots, (self.end, float(self.base))]
+        for (i0, v0), (i1, v1) in zip(points, points[1:], strict=False):
+            if iteration < i1:
+                return v0 + (iteration - i0) * (v1 - v0) / max(1, i1 - i0)
+        return float(self.base)
 
     def retarget(self, iteration: int, end: int) -> ScheduleWarp:
         """The map that is unchanged up to `iteration` and reaches `base` at `end`."""
