@@ -159,12 +159,11 @@ def eager_step_seconds(cfg: Config, device: str) -> float:
 
 
 def _steps_time(cfg: Config, start_iteration: int, step: float) -> float:
-    """Seconds of eager steps the run would take (within its time limits)."""
-    left = max(0, cfg.train.iters - start_iteration) * step
-    limits = [x for x in (cfg.train.max_seconds, cfg.train.budget) if x > 0]
+    """Seconds of eager steps the run would take (a budget fills its time with steps)."""
     if cfg.train.budget > 0:
-        left = cfg.train.budget  # a budget fills its time with steps
-    return min([left, *limits])
+        return cfg.train.budget
+    left = max(0, cfg.train.iters - start_iteration) * step
+    return min(left, cfg.train.max_seconds) if cfg.train.max_seconds > 0 else left
 
 
 def worth_measuring(cfg: Config, device: str, start_iteration: int = 0) -> bool:
