@@ -10,9 +10,9 @@ render and a checkpoint cost (`StepCosts`, `neus_l0.train.probe`), then:
   scaled to keep their fraction of the run, recorded with ``budget: 0`` (re-running it
   trains the same schedule);
 * while it runs, `retarget_end` shortens the rest of the schedule when the steps slow down
-  (another job starts), and `ScheduleWarp` maps the real iteration to the iteration of the
-  recorded schedule (``virtual``), so that the learning rate, the anneal and the hash-grid
-  levels still finish, compressed, instead of being cut off.
+  (another job starts), or lengthens it when they speed up, and `ScheduleWarp` maps the
+  real iteration to the iteration of the recorded schedule, so that the learning rate, the
+  anneal and the hash-grid levels still finish, compressed, instead of being cut off.
 
 The capacity ladder (`LADDER`) picks rays, samples and the hash grid per budget for the
 device's default setting.
@@ -32,10 +32,6 @@ MARGIN = 0.04
 RESERVE_S = 3.0
 #: Fewest iterations a plan may have.
 MIN_ITERS = 20
-#: A slow-down shortens the schedule only when the rest would overrun by more than this.
-DRIFT_TOLERANCE = 0.02
-
-
 @dataclasses.dataclass(frozen=True)
 class StepCosts:
     """Measured seconds: one training step, one validation render, one checkpoint."""
@@ -60,6 +56,12 @@ class Plan:
     iters: int
     costs: StepCosts
     overhead_s: float
+
+    @property
+    def spare_s(self) -> float:
+        """Seconds the plan leaves unused (`MARGIN` of the time for steps)."""
+        return max(0.0, self.budget_s - self.spent_s - self.overhead_s
+                   - self.iters * self.costs.step_s)
 
     @property
     def estimated_s(self) -> float:
@@ -168,22 +170,28 @@ class ScheduleWarp:
                    tuple((int(i), float(v)) for i, v in data["knots"]))
 
 
-def retarget_end(iteration: int, end: int, left_s: float, step_s: float) -> int | None:
-    """A shorter end when the rest of the schedule would overrun the time left.
+def retarget_end(iteration: int, end: int, left_s: float, step_s: float,
+                 spare_s: float) -> int | None:
+    """A new end when the rest of the schedule would eat more than half the plan's spare
+    time (`Plan.spare_s`) or leave more than twice it unused.
 
     Args:
         iteration: now; end: the current end; left_s: seconds left for steps (the budget
             less the time spent and the reserve); step_s: the recent seconds per iteration
-            (including the loop's logging, validation and checkpoints).
+            (including the loop's logging, validation and checkpoints); spare_s: the
+            seconds the plan left unused.
 
     Returns:
-        the new end, or None when the rest fits (within `DRIFT_TOLERANCE`) or nothing
-        can be cut.
+        the end that fills `left_s` less `spare_s` at `step_s`, or None when the rest
+        fits or the run is at its end.
     """
     need = (end - iteration) * step_s
-    if step_s <= 0 or need <= left_s * (1.0 + DRIFT_TOLERANCE) or end - iteration <= 1:
+    if step_s <= 0 or end - iteration <= 1:
         return None
-    return iteration + max(1, math.floor(max(left_s, 0.0) * (1.0 - MARGIN) / step_s))
+    if left_s - 2.0 * spare_s <= need <= left_s - 0.5 * spare_s:
+        return None
+    new = iteration + max(1, math.floor((left_s - spare_s) / step_s))
+    return new if new != end else None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -3,7 +3,8 @@
 `plan_run` measures the run's costs after the compile (`neus_l0.train.probe`, undone
 after), fixes the plan (`neus_l0.train.budget`), sets it on the run and says in one line
 what the budget bought. `BudgetKeeper` then watches the step rate at every log step,
-compresses the rest of the schedule when the steps slow down, stops the run at the
+compresses the rest of the schedule when the steps slow down (stretches it when they speed
+up), stops the run at the
 deadline as a last resort, and writes ``RUN/budget.json``. `EstimateLine` measures the
 step of a run without a budget on its first steps and prints the expected duration when it
 is over half an hour.
@@ -104,18 +105,20 @@ class BudgetKeeper(TrainingCallback):
     def on_log(self, run: RunState, metrics: dict) -> None:
         self.marks = (self.marks + [(self.spent(), run.iteration)])[-(self.window + 1):]
         (t0, i0), (t1, i1) = self.marks[0], self.marks[-1]
-        if i1 <= i0:
-            return
+        if len(self.marks) <= self.window or i1 <= i0:
+            return  # judge the rate over `window` log intervals
         step_s = (t1 - t0) / (i1 - i0)
-        end = retarget_end(run.iteration, run.end, self.left_for_steps(), step_s)
+        end = retarget_end(run.iteration, run.end, self.left_for_steps(), step_s,
+                           self.plan.spare_s)
         if end is None:
             return
         was = run.end
         run.setup.warp = run.setup.warp.retarget(run.iteration, end)
         self.retargets.append({"iter": run.iteration, "end": end, "was": was,
                                "step_s": round(step_s, 5)})
-        _say(f"steps slowed to {1000 * step_s:.1f} ms (planned "
-             f"{1000 * self.plan.costs.step_s:.1f}): the rest of the schedule is compressed "
+        how = "compressed" if end < was else "stretched"
+        _say(f"steps now take {1000 * step_s:.1f} ms (planned "
+             f"{1000 * self.plan.costs.step_s:.1f}): the rest of the schedule is {how} "
              f"to end at iteration {end} (was {was})")
 
     def after_step(self, run: RunState) -> None:

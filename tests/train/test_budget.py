@@ -76,10 +76,11 @@ def test_the_warp_is_continuous_and_ends_the_schedule():
     assert lr_factor(again.at(600), 10, 1000, 0.05) == pytest.approx(0.05)
 
 
-def test_retarget_only_when_the_rest_overruns():
-    assert retarget_end(100, 1000, left_s=95.0, step_s=0.1) is None  # 90 s fits
-    assert retarget_end(100, 1000, left_s=45.0, step_s=0.1) == 100 + int(45 * (1 - MARGIN) / 0.1)
-    assert retarget_end(999, 1000, left_s=0.0, step_s=1.0) is None  # nothing to cut
+def test_retarget_only_when_the_rest_overruns_or_leaves_time_unused():
+    assert retarget_end(100, 1000, left_s=95.0, step_s=0.1, spare_s=4.0) is None  # 90 s fits
+    assert retarget_end(100, 1000, 45.0, 0.1, 4.0) == 100 + int(41 / 0.1)
+    assert retarget_end(100, 1000, 180.0, 0.1, 4.0) == 100 + int(176 / 0.1)
+    assert retarget_end(999, 1000, left_s=0.0, step_s=1.0, spare_s=4.0) is None  # at its end
 
 
 def _simulate(budget, start_s, step_s, slow_after_s, slowdown, log_every=50):
@@ -94,21 +95,22 @@ def _simulate(budget, start_s, step_s, slow_after_s, slowdown, log_every=50):
         if i % log_every == 0:
             marks = (marks + [(now, i)])[-4:]
             rate = (marks[-1][0] - marks[0][0]) / (marks[-1][1] - marks[0][1])
-            end = retarget_end(i, warp.end, budget - now - 0.2 - RESERVE_S, rate)
+            end = retarget_end(i, warp.end, budget - now - 0.2 - RESERVE_S, rate, plan.spare_s)
             if end is not None:
                 warp = warp.retarget(i, end)
     return plan, warp, now + 0.2  # the final checkpoint
 
 
-@pytest.mark.parametrize("slowdown", [1.0, 1.5, 3.0])
+@pytest.mark.parametrize("slowdown", [1.0, 1.5, 3.0, 0.5])
 def test_a_run_on_a_fake_clock_ends_in_time_with_its_schedule_finished(slowdown):
     plan, warp, end_s = _simulate(240.0, 20.0, 0.05, slow_after_s=100.0, slowdown=slowdown)
     assert end_s <= 240.0 - RESERVE_S + 1e-6
     assert warp.at(warp.end) == plan.iters  # the schedule reached its end
+    assert end_s > 0.85 * 240  # and used its time
     if slowdown == 1.0:
-        assert not warp.warped and end_s > 0.9 * 240
+        assert not warp.warped and plan.spare_s > 0
     else:
-        assert warp.warped and warp.end < plan.iters
+        assert warp.warped and (warp.end < plan.iters) == (slowdown > 1)
 
 
 def test_the_device_default_and_its_ladder():
