@@ -167,7 +167,7 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
                                                 run.generator, run.scaler, run.occupancy)
         run.rays = rays or run.rays
         run.last_checkpoint = ckpt
-        run.setup.warp = _resumed_warp(state, cfg, run.model)
+        run.setup.warp = _resumed_warp(state, cfg)
     return run
 
 
@@ -217,7 +217,7 @@ def _new_run(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
     return run
 
 
-def _resumed_warp(state: dict, cfg: Config, model) -> ScheduleWarp | None:
+def _resumed_warp(state: dict, cfg: Config) -> ScheduleWarp | None:
     """The compressed schedule a budget run's checkpoint holds (None when it has none or
     `train.iters` changed since)."""
     if "schedule" not in state:
