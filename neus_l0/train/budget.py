@@ -26,7 +26,7 @@ import math
 from neus_l0.config.schema import Config
 
 #: Fraction of the time left for steps that the plan leaves unused (rate noise).
-MARGIN = 0.04
+MARGIN = 0.025
 #: Seconds kept for the end besides the final checkpoint's measured cost: closing the run
 #: (events, budget.json) and the interpreter's exit with torch loaded.
 RESERVE_S = 3.0
