@@ -143,6 +143,7 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     """
     ckpt, state = _found_checkpoint(scene, cfg, run_dir, device, resume)
     scene = scene.to(device)
+    _check_space(scene, cfg, run_dir, device)  # before the hull or any step
     setup = _static_setup(scene, cfg, run_dir)
 
     def measure() -> float:
@@ -157,10 +158,6 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     if cfg.train.compile:
         use_persistent_cache()  # before the optimiser imports torch._dynamo (the CLI did it too)
     run = _new_run(scene, cfg, run_dir, device, setup)
-    t = cfg.train
-    saves = (t.iters // t.save_every if t.save_every else 0) + 1
-    kept = min(t.keep_checkpoints, saves) if t.keep_checkpoints else saves
-    check_writable(run_dir, (kept + 1) * checkpoint_bytes(run.model, run.optimizer))
     run.setup.compiled = compiled_step(render_and_loss, cfg, device)
     if state is not None:
         run.iteration, rays = restore_training(ckpt, state, run.model, run.optimizer,
@@ -191,6 +188,15 @@ def _found_checkpoint(scene: Scene, cfg: Config, run_dir: Path, device: torch.de
     if resume:
         check_same_scene(run_dir, scene)
     return found if found is not None else (None, None)
+
+
+def _check_space(scene: Scene, cfg: Config, run_dir: Path, device: torch.device) -> None:
+    """The run folder takes the checkpoints the schedule keeps (`check_writable`)."""
+    t = cfg.train
+    saves = (t.iters // t.save_every if t.save_every else 0) + 1
+    kept = min(t.keep_checkpoints, saves) if t.keep_checkpoints else saves
+    model = make_model(cfg, device)
+    check_writable(run_dir, (kept + 1) * checkpoint_bytes(model, make_optimizer(model, cfg)))
 
 
 def _static_setup(scene: Scene, cfg: Config, run_dir: Path) -> StepSetup:
@@ -353,20 +359,22 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     started = time.monotonic()
     with RunLock(run_dir), StopOnSignal() as stop:
         run = build_run_state(scene, cfg, Path(run_dir), torch.device(device), resume)
-        return _run_loop(run, own + _budget_callbacks(run, started, resume) + list(callbacks),
+        return _run_loop(run, _with_budget(run, own, started, resume) + list(callbacks),
                          stop_at, stop)
 
 
-def _budget_callbacks(run: RunState, started: float, resume: bool) -> list[TrainingCallback]:
-    """A budget run's plan and keeper (`neus_l0.train.budget_run`), else the duration
-    estimate; the early stop when `train.early_stop` is on."""
-    stop = [EarlyStop()] if run.cfg.train.early_stop else []
+def _with_budget(run: RunState, own: list[TrainingCallback], started: float,
+                 resume: bool) -> list[TrainingCallback]:
+    """`own` with a budget run's plan and keeper (`neus_l0.train.budget_run`) or the
+    duration estimate after it, and the early stop before it when `train.early_stop` is on
+    (its number joins the metrics line before it is written)."""
+    first = [EarlyStop()] if run.cfg.train.early_stop else []
     if run.cfg.train.budget <= 0:
-        return [EstimateLine(), *stop]
+        return [*first, *own, EstimateLine()]
     if resume:
         raise ConfigError(f"train.budget={run.cfg.train.budget:g}: a resumed run keeps the "
                           "schedule its config.yaml recorded; resume without a budget")
-    return [plan_run(run, started), *stop]
+    return [*first, *own, plan_run(run, started)]
 
 
 def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
