@@ -374,7 +374,9 @@ class TrainConfig:
     `val_every`, `save_every`) keep their fraction of it (`neus_l0.train.budget`). The run's
     config.yaml records the plan with ``budget: 0``, so a resume or a re-run of it trains
     the same schedule; ``RUN/budget.json`` records the budget and the measurements. If the
-    steps slow down later, the rest of the schedule is compressed to end in time."""
+    step rate drifts later, the rest of the schedule is compressed (or stretched) to end in
+    time. Without ``--conf``, `neus-l0 train` takes the device's setting and its capacity
+    for the budget (`neus_l0.train.budget.LADDER`)."""
     early_stop: bool = False
     """Stop when the surface stops moving: an SDF probe on points near the surface
     (`neus_l0.train.early_stop`); off by default (not yet measured to pay)."""
