@@ -77,6 +77,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="score each run at N points of its budget (budget * k / N, k = 1..N; "
                         "the last is the run's end): eval.json's curve of Chamfer against "
                         "training time (default 0: the end only)")
+    p.add_argument("--plan", action="store_true",
+                   help="each budget is train.budget: iterations planned from the measured "
+                        "step rate, capacity from the device's ladder, start-up and compile "
+                        "counted (default: train.max_seconds cuts the config's schedule)")
     p.add_argument("--plot-only", metavar="DIR", default=None,
                    help="only redraw DIR/plots/ from DIR/results.json")
     p.add_argument("--no-plots", action="store_true", help="do not draw DIR/plots/")
@@ -123,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
         device=pick_device(args.device), threads=args.threads, resolution=args.resolution,
         eval_density=args.eval_density, sample_rays=args.sample_rays,
         psnr_pixels=args.psnr_pixels, backend=args.backend, timeout=args.timeout,
-        snapshots=args.snapshots)
+        snapshots=args.snapshots, planned=args.plan)
     check_spec(spec)
     check_output_dir(args.out, "--out", ("sweep.json",), SWEEP_NAMES, "a bench folder")
     chosen = [f"--{k.replace('_', '-')} {getattr(spec, k)}" for k in device_defaults(spec.device)

@@ -19,9 +19,16 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                                    "[key=value ...]` lists every key with its meaning.")
     p.add_argument("data", metavar="DATA",
                    help="scene folder (image/, mask/, cameras_sphere.npz; or transforms.json)")
-    p.add_argument("--conf", default="wmask",
+    p.add_argument("--conf", default=None,
                    help="config: a YAML path, confs/NAME.yaml or a built-in NAME "
-                        "(wmask, womask, demo); default wmask")
+                        "(demo, fast, wmask, womask); default: the device's setting, demo "
+                        "on a CPU, fast on CUDA, with its capacity for --budget "
+                        "(wmask/womask are NeuS's reference settings)")
+    p.add_argument("--budget", default=None, metavar="TIME",
+                   help="the whole run's time: seconds or 90s, 10m, 1h (start-up, compile "
+                        "and the final checkpoint included); the iterations are planned "
+                        "from the step rate measured after the compile, the schedule "
+                        "finishes; sets train.budget")
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"],
                    help="default: cuda when available")
@@ -45,28 +52,37 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 
 def run(args: argparse.Namespace) -> int:
-
     import sys
 
     from neus_l0.commands._paths import check_not_input, check_output_dir
     from neus_l0.commands._threads import check_threads
-    from neus_l0.config.load import load_config
+    from neus_l0.config.duration import parse_seconds
     from neus_l0.device import pick_device, use_cpu_threads
     from neus_l0.errors import NeusL0Error
     from neus_l0.formats.open import open_scene
     from neus_l0.run.folder import RUN_LEFTOVERS, RUN_RECORDS
     from neus_l0.train.loop import train
+    from neus_l0.train.run_config import (
+        fresh_config,
+        process_seconds,
+        resumed_config,
+        with_budget,
+    )
 
     if args.change_config and not args.resume:
         raise NeusL0Error("--change-config allows a resumed run to change its config; "
                           "without --resume it does nothing: add --resume, or drop it")
     check_not_input(args.out, "--out", [args.data])
     run_dir = check_output_dir(args.out, "--out", RUN_RECORDS, RUN_LEFTOVERS, "a run folder")
-    if args.resume and (run_dir / "config.yaml").is_file():
-        cfg = _resumed_config(run_dir, args.overrides, args.change_config)
-    else:
-        cfg = load_config(args.conf, args.overrides)
     device = pick_device(args.device)
+    if args.resume and args.budget is not None:
+        raise NeusL0Error(f"--budget {args.budget}: a resumed run keeps the schedule its "
+                          "config.yaml recorded; resume without --budget")
+    budget = parse_seconds(args.budget, "--budget", allow_zero=False) if args.budget else 0.0
+    if args.resume and (run_dir / "config.yaml").is_file():
+        cfg = resumed_config(run_dir, args.overrides, args.change_config)
+    else:
+        cfg = fresh_config(args.conf, args.overrides, device, budget)
     check_threads(args.threads)
     if args.stop_at is not None and args.stop_at < 1:
         raise NeusL0Error(f"--stop-at {args.stop_at}: must be at least 1")
@@ -76,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"neus-l0 train: {threads} torch thread{'s' if threads > 1 else ''} ({how}; "
               "--threads N to set)", file=sys.stderr, flush=True)
     scene = open_scene(args.data, downscale=cfg.data.downscale, device=device)
+    asked = cfg.train.budget
+    if asked > 0:  # train() counts from its call: hand it what start-up left
+        cfg = with_budget(cfg, asked - process_seconds())
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
                    progress=not args.quiet, stop_at=args.stop_at)
     if result.signal:
@@ -89,30 +108,10 @@ def run(args: argparse.Namespace) -> int:
                  and result.iteration >= args.stop_at else "stopped at the time budget")
     print(f"{state}: {result.iteration} iterations in {result.seconds:.0f} s; "
           f"checkpoint {result.checkpoint}")
+    if asked > 0:
+        took = process_seconds()
+        print(f"budget {asked:.0f} s: the run took {took:.1f} s end to end "
+              f"({100 * took / asked:.0f} % of it)")
     print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/, "
           f"TensorBoard events: tensorboard --logdir {run_dir})")
     return 0
-
-
-def _resumed_config(run_dir, overrides: list[str], change: bool):
-    """The resumed run's config: ``config.yaml``, the overrides earlier resumes recorded, then
-    these `overrides` (training records what they change: `neus_l0.run.resumes`).
-
-    Raises:
-        ConfigError: overrides that change what is learnt without ``--change-config``.
-    """
-    from neus_l0.config.load import load_config
-    from neus_l0.errors import ConfigError
-    from neus_l0.run.resumes import changed_keys, guarded_keys, recorded_overrides
-
-    base = run_dir / "config.yaml"
-    prior = recorded_overrides(run_dir)
-    before = load_config(base, prior)
-    cfg = load_config(base, prior + list(overrides))
-    changed = changed_keys(before, cfg)
-    guarded = guarded_keys(changed)
-    if guarded and not change:
-        raise ConfigError(f"{run_dir}: resuming with {', '.join(guarded)} changed would train "
-                          "a different run; add --change-config to do it on purpose (recorded "
-                          "in resumes.jsonl; config.yaml keeps the original)")
-    return cfg

@@ -18,10 +18,12 @@ from typing import Any
 import yaml
 
 from neus_l0.config.checks import validate
+from neus_l0.config.duration import parse_seconds
 from neus_l0.config.legacy import FORMER_NAMES, modern_override, read_legacy
 from neus_l0.config.schema import (
     Config,
     SamplerConfig,
+    Seconds,
 )
 from neus_l0.errors import ConfigError
 
@@ -57,6 +59,8 @@ def _type_name(tp: Any) -> str:
 def _coerce(value: Any, tp: Any, key: str) -> Any:
     """Return `value` converted to the annotated type `tp`, or raise `ConfigError`."""
     origin = typing.get_origin(tp)
+    if tp is Seconds:
+        return parse_seconds(value, key)
     if tp is SamplerConfig and isinstance(value, str):
         value = {"name": value}  # `sampler: hvs` is short for `sampler: {name: hvs}`
     if dataclasses.is_dataclass(tp):

@@ -9,7 +9,7 @@ old runs used in `neus_l0.config.legacy`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal, get_args
+from typing import Literal, NewType, get_args
 
 # The choice lists: each field with a fixed set of values is typed with one of these, and
 # `neus_l0.config.load` refuses any other value, naming the key and the choices.
@@ -39,6 +39,9 @@ GradientMethod = Literal["autograd", "analytic", "finite-difference"]
 ColorMode = Literal["idr", "no_view_dir", "no_normal"]
 #: Mixed precision of the networks.
 AmpMode = Literal["off", "bf16", "fp16"]
+#: A duration in seconds, written as a number or with a unit (``90s``, ``10m``, ``1h``;
+#: `neus_l0.config.duration.parse_seconds`).
+Seconds = NewType("Seconds", float)
 
 
 @dataclass
@@ -401,6 +404,20 @@ class TrainConfig:
     """Wall-clock budget of the training loop (steps, logging, validation, checkpoints; not
     the setup before it nor the time of training hooks): stop and checkpoint after this many
     seconds (0: no budget)."""
+    budget: Seconds = Seconds(0.0)
+    """Time for the whole run, end to end (start-up, compile, steps, the final checkpoint):
+    seconds, or ``90s``, ``10m``, ``1h`` (0: off, `iters` decides). The step rate is
+    measured after the compile on a few steps that are then undone; `iters` is set from it
+    and the schedule's landmarks (`warm_up`, `anneal_end`, the hash grid's `update_steps`,
+    `val_every`, `save_every`) keep their fraction of it (`neus_l0.train.budget`). The run's
+    config.yaml records the plan with ``budget: 0``, so a resume or a re-run of it trains
+    the same schedule; ``RUN/budget.json`` records the budget and the measurements. If the
+    step rate drifts later, the rest of the schedule is compressed (or stretched) to end in
+    time. Without ``--conf``, `neus-l0 train` takes the device's setting and its capacity
+    for the budget (`neus_l0.train.budget.LADDER`)."""
+    early_stop: bool = False
+    """Stop when the surface stops moving: an SDF probe on points near the surface
+    (`neus_l0.train.early_stop`); off by default (not yet measured to pay)."""
     amp: AmpMode = "off"
     """Mixed precision of the networks on CUDA: `off`, `bf16` or `fp16` (with a gradient
     scaler and fused Adam); ignored on the CPU."""

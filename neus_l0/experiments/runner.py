@@ -60,6 +60,14 @@ from neus_l0.train.signals import STOP_SIGNALS, StopOnSignal
 BENCH_OVERRIDES = ("train.val_every=0", "train.save_every=0")
 
 
+def _merged(base: dict, extra: dict) -> dict:
+    """`base` with `extra`'s nested keys set over it."""
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merged(out.get(k) or {}, v) if isinstance(v, dict) else v
+    return out
+
+
 @dataclasses.dataclass
 class RunSpec:
     """Everything one run needs (JSON-serialisable).
@@ -89,6 +97,9 @@ class RunSpec:
         label: the run's name in a comparison (e.g. an arm of `tools/bench_fast_vs_neus.py`);
             informative only.
         psnr_pixels: at most this many pixels rendered per held-out view (`psnr_stride`).
+        planned: train with ``train.budget`` (iterations planned from the measured step
+            rate, capacity from the device's ladder: `neus_l0.train.budget.LADDER`) instead
+            of cutting the schedule at ``train.max_seconds``.
     """
 
     name: str
@@ -110,6 +121,7 @@ class RunSpec:
     snapshots: list[float] = dataclasses.field(default_factory=list)
     label: str | None = None
     psnr_pixels: int = 10000
+    planned: bool = False
 
     @property
     def run_dir(self) -> Path:
@@ -125,22 +137,36 @@ class RunSpec:
 
     def own_overrides(self) -> list[str]:
         """What differs between the runs of a sweep: sampler, seed, budget."""
+        if self.planned:
+            return [*self.ladder(), f"sampler={self.sampler}", f"train.seed={self.seed}",
+                    f"train.budget={self.budget_s:g}"]
         return [f"sampler={self.sampler}", f"train.seed={self.seed}",
                 f"train.max_seconds={self.budget_s:g}"]
+
+    def ladder(self) -> tuple[str, ...]:
+        """The capacity ladder's overrides for this budget (none unless `planned`)."""
+        if not self.planned:
+            return ()
+        from neus_l0.train.budget import default_setting
+
+        return default_setting(self.device, self.budget_s)[1]
 
     def load_config(self):
         """The run's `neus_l0.config.schema.Config` (raises `ConfigError` for a bad one)."""
         import copy
 
-        from neus_l0.config.load import config_from_dict, load_config
+        from neus_l0.config.load import config_from_dict, load_config, parse_overrides
 
         if self.config is None:
             return load_config(self.conf, self.run_overrides())
         data = copy.deepcopy(self.config)
+        if self.planned:
+            data = _merged(data, parse_overrides(list(self.ladder())))
         block = data.get("sampler")
         data["sampler"] = ({**block, "name": self.sampler} if isinstance(block, dict)
                            else self.sampler)
-        data.setdefault("train", {}).update(seed=self.seed, max_seconds=self.budget_s)
+        timing = {"budget": self.budget_s} if self.planned else {"max_seconds": self.budget_s}
+        data.setdefault("train", {}).update(seed=self.seed, **timing)
         return config_from_dict(data)
 
     def base_row(self) -> dict:

@@ -52,7 +52,7 @@ SWEEP_NAMES = ("sweep.json", "runs", "scenes", "plots", "results.csv", "results.
 #: Settings that must match between invocations on the same sweep folder.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
                "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels",
-               "snapshots")
+               "snapshots", "planned")
 
 
 @dataclasses.dataclass
@@ -210,6 +210,8 @@ class SweepSpec:
         timeout: seconds after which a run's process is killed (None: no limit).
         snapshots: score each run at ``budget * k / snapshots`` seconds, k = 1..snapshots-1,
             besides its end (`snapshot_marks`; 0: the end only).
+        planned: budgets are ``train.budget`` (planned iterations and the device's capacity
+            ladder) rather than ``train.max_seconds`` cut-offs (`RunSpec.planned`).
     """
 
     out_dir: str | Path
@@ -232,6 +234,7 @@ class SweepSpec:
     backend: str = "local"
     timeout: float | None = None
     snapshots: int = 0
+    planned: bool = False
 
     def __post_init__(self):
         for key, value in device_defaults(self.device).items():
@@ -249,6 +252,7 @@ class SweepSpec:
             "sample_rays": self.sample_rays, "psnr_pixels": self.psnr_pixels,
             # only when set, so that folders from before --snapshots still match
             **({"snapshots": self.snapshots} if self.snapshots else {}),
+            **({"planned": True} if self.planned else {}),
         }
 
     def run_spec(self, scene: str, folder: Path, sampler: str, budget: float, seed: int,
@@ -261,7 +265,7 @@ class SweepSpec:
                        device=self.device, threads=self.threads, holdout=self.holdout,
                        resolution=self.resolution, eval_density=self.eval_density,
                        sample_rays=self.sample_rays, config=config,
-                       psnr_pixels=self.psnr_pixels,
+                       psnr_pixels=self.psnr_pixels, planned=self.planned,
                        snapshots=snapshot_marks(float(budget), self.snapshots))
 
 

@@ -213,13 +213,20 @@ class HashGridEncoding(Encoding):
         self.register_buffer("corner_mult", corners * self.level_mult, persistent=False)
         self.register_buffer("offset_col", self.offsets[:, None].clone(), persistent=False)
         self.register_buffer("steps", torch.zeros((), dtype=torch.int64))
+        # a tensor, so that a budget's plan can re-set it without recompiling the step
+        self.register_buffer("level_every", torch.tensor(self.update_steps), persistent=False)
         table = torch.empty(offsets[-1], n_features).uniform_(-cfg.init_scale, cfg.init_scale)
         self.table = nn.Parameter(table / lr_scale)  # (sum of level sizes, F)
 
     def active_levels(self) -> Tensor:
         """() int64: how many levels are active now (a tensor, so no host sync)."""
-        return torch.clamp(self.start_level + self.steps // self.update_steps,
+        return torch.clamp(self.start_level + self.steps // self.level_every,
                            max=self.n_levels)
+
+    def set_update_steps(self, update_steps: int) -> None:
+        """Re-set the iterations between level activations (a budget's plan)."""
+        self.update_steps = max(1, int(update_steps))
+        self.level_every.fill_(self.update_steps)
 
     def finest_active_resolution(self) -> Tensor:
         """() float: cells per axis of the finest active level (a tensor, no host sync)."""

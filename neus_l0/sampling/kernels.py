@@ -70,6 +70,8 @@ uniform.
 
 from __future__ import annotations
 
+import os
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -228,6 +230,40 @@ def _cdf(mass: Tensor, d: Tensor) -> tuple[Tensor, Tensor]:
     return csum / csum[:, -1:], degenerate
 
 
+#: On CUDA, keep the search out of Inductor's fusion (`opaque_searchsorted`): Inductor's
+#: fused ``bucketize_binary_search`` inside a reduction kernel failed to compile in Triton
+#: (torch 2.11, Triton 3.6). ``NEUS_L0_OPAQUE_SEARCHSORTED=0`` turns it off. The CPU keeps
+#: the fused search.
+OPAQUE_SEARCHSORTED_ON_CUDA = os.environ.get("NEUS_L0_OPAQUE_SEARCHSORTED", "1") != "0"
+
+
+@torch.library.custom_op("neus_l0::searchsorted_right", mutates_args=())
+def opaque_searchsorted(sorted_seq: Tensor, values: Tensor) -> Tensor:
+    """``torch.searchsorted(sorted_seq, values, right=True)`` as an op Inductor cannot
+    fuse (it calls the eager kernel).
+
+    Args:
+        sorted_seq: (R, M) sorted rows; values: (R, n).
+
+    Returns:
+        (R, n) int64.
+    """
+    return torch.searchsorted(sorted_seq, values, right=True)
+
+
+@opaque_searchsorted.register_fake
+def _(sorted_seq: Tensor, values: Tensor) -> Tensor:
+    return values.new_empty(values.shape, dtype=torch.int64)
+
+
+def search_right(cdf: Tensor, u: Tensor) -> Tensor:
+    """`torch.searchsorted(cdf, u, right=True)`, through `opaque_searchsorted` on CUDA
+    while `OPAQUE_SEARCHSORTED_ON_CUDA`."""
+    if cdf.is_cuda and OPAQUE_SEARCHSORTED_ON_CUDA:
+        return opaque_searchsorted(cdf.contiguous(), u.contiguous())
+    return torch.searchsorted(cdf, u, right=True)
+
+
 def _locate(cdf: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The piece of each quantile and the cdf at its ends.
 
@@ -238,7 +274,7 @@ def _locate(cdf: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         idx (R, n) int64, the piece i with cdf_{i-1} <= u < cdf_i; lo, hi (R, n) the cdf at
         its ends (hi > lo: a piece that holds a quantile has mass).
     """
-    idx = torch.searchsorted(cdf, u, right=True).clamp_(max=cdf.shape[-1] - 1)
+    idx = search_right(cdf, u).clamp_(max=cdf.shape[-1] - 1)
     starts = F.pad(cdf, (1, 0))  # (R, M+1): piece i starts at starts[:, i]
     return idx, torch.gather(starts, -1, idx), torch.gather(cdf, -1, idx)
 

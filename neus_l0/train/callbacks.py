@@ -95,6 +95,7 @@ class ProgressBar(TrainingCallback):
         self.bar.update(1)
 
     def on_log(self, run: RunState, metrics: dict) -> None:
+        self.bar.total = run.end  # a budget run may have compressed its schedule
         self.bar.set_postfix(loss=f"{metrics['loss']:.4f}", psnr=f"{metrics['psnr']:.2f}",
                              inv_s=f"{metrics['inv_s']:.1f}", its=f"{metrics['its_per_s']:.1f}")
 

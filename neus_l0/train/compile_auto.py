@@ -8,9 +8,13 @@ compile cost?"). `auto` weighs the two:
     saving  = min(iterations left x eager step, train.max_seconds) x (1 - compiled fraction)
     compile = the expected compile time (warm when this step was compiled here before)
 
-and compiles when the saving is larger. The eager step time is a cost model (seconds per ray
-sample on the CPU, a launch-bound constant on CUDA); the compile time comes from a small
-record in the user's cache (`compile_record_path`), which every compile updates. Compiling
+and compiles when the saving is larger. The eager step time is measured: a few timed eager
+steps on the run itself, undone after (`neus_l0.train.probe`), noted in a small record in
+the user's cache (`compile_record_path`) so that the next run of the setting reads it. A
+cost model (seconds per ray sample on the CPU, a launch-bound constant on CUDA) only
+decides whether measuring is worth it: when even a step `UNSEEN_FACTOR` times slower than
+it would not repay a warm compile, the run stays eager unmeasured. The compile time comes
+from the same record, which every compile updates. Compiling
 needs an SDF gradient without double backward: `auto` takes ``model.sdf.gradient=analytic``
 (equal to autograd's to float rounding, `neus_l0.fields.sdf`) in place of ``autograd``.
 
@@ -26,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,11 +62,14 @@ COLD_COMPILE_S = {"cpu": 45.0, "cuda": 90.0}
 #: compile (docs/BENCHMARKS.md, "When does the step compile, and what does a cold compile
 #: cost?"); once the record holds a warm compile, its time replaces this.
 WARM_COMPILE_S = {"cpu": 12.0, "cuda": 20.0}
+#: How far the cost model may be off for a setting never measured here (it said 0.6 s for
+#: a `wmask` step that took 14-20 s on a 2-core CPU).
+UNSEEN_FACTOR = 30.0
 #: Config sections that do not change the compiled graph (the optimiser and the schedule run
 #: outside it); everything else in the config is part of the record's key.
 _NOT_IN_GRAPH = ("iters", "lr", "lr_alpha", "warm_up", "seed", "log_every", "val_every",
                  "val_downscale", "save_every", "keep_checkpoints", "max_seconds", "compile",
-                 "tensorboard", "threads")
+                 "tensorboard", "threads", "budget", "early_stop")
 
 
 def step_key(cfg: Config, device: str) -> str:
@@ -100,6 +108,29 @@ def note_compile(key: str, seconds: float, path: Path | None = None) -> None:
         pass
 
 
+def eager_key(cfg: Config, device: str) -> str:
+    """The record's key of `cfg`'s measured eager step."""
+    return "eager:" + step_key(cfg, device)
+
+
+def note_eager(key: str, seconds: float, path: Path | None = None) -> None:
+    """Record a measured eager step (`eager_key`; silently skipped when not writable)."""
+    path = path or compile_record_path()
+    record = read_record(path)
+    record[key] = {"eager_s": round(seconds, 4)}
+    try:
+        atomic_write_json(path, record)
+    except OSError:
+        pass
+
+
+def recorded_eager(record: dict, key: str) -> float | None:
+    """The eager step the record holds for `key`, if any."""
+    entry = record.get(key)
+    value = entry.get("eager_s") if isinstance(entry, dict) else None
+    return float(value) if isinstance(value, (int, float)) and value > 0 else None
+
+
 @dataclass(frozen=True)
 class CompileChoice:
     """What `choose_compile` decided and from which estimates (seconds)."""
@@ -109,14 +140,16 @@ class CompileChoice:
     saving_s: float
     compile_s: float
     warm: bool
+    measured: bool = False
 
     def line(self, why: str = "") -> str:
         """One line saying what was chosen and why."""
         cache = "warm cache" if self.warm else "empty cache"
+        how = "measured" if self.measured else "estimated"
         if self.compile:
             return (f"train.compile=auto: compiling the step (it should save "
                     f"~{self.saving_s:.0f} s of eager steps at "
-                    f"~{1000 * self.eager_step_s:.0f} ms; compiling costs "
+                    f"~{1000 * self.eager_step_s:.0f} ms, {how}; compiling costs "
                     f"~{self.compile_s:.0f} s, {cache}){why}")
         return (f"train.compile=auto: eager (compiling would cost ~{self.compile_s:.0f} s, "
                 f"{cache}, to save ~{self.saving_s:.0f} s){why}")
@@ -133,20 +166,37 @@ def eager_step_seconds(cfg: Config, device: str) -> float:
     return EAGER_CPU_S_PER_SAMPLE * samples / threads ** 0.5
 
 
+def _steps_time(cfg: Config, start_iteration: int, step: float) -> float:
+    """Seconds of eager steps the run would take (a budget fills its time with steps)."""
+    if cfg.train.budget > 0:
+        return cfg.train.budget
+    left = max(0, cfg.train.iters - start_iteration) * step
+    return min(left, cfg.train.max_seconds) if cfg.train.max_seconds > 0 else left
+
+
+def worth_measuring(cfg: Config, device: str, start_iteration: int = 0) -> bool:
+    """Whether compiling could repay a warm compile if the eager step were `UNSEEN_FACTOR`
+    times the cost model's (else the run stays eager without measuring)."""
+    kind = "cuda" if device == "cuda" else "cpu"
+    step = UNSEEN_FACTOR * eager_step_seconds(cfg, kind)
+    saving = _steps_time(cfg, start_iteration, step) * (1.0 - COMPILED_FRACTION[kind])
+    return saving > WARM_COMPILE_S[kind]
+
+
 def choose_compile(cfg: Config, device: str, start_iteration: int = 0,
-                   record: dict | None = None) -> CompileChoice:
+                   record: dict | None = None, eager_s: float | None = None) -> CompileChoice:
     """Whether `auto` compiles a run of `cfg` on `device` from `start_iteration` (pure but
     for the thread count the cost model reads).
 
     Args:
-        record: the compile record (`read_record`); its entry for `step_key` means a warm cache.
+        record: the compile record (`read_record`); its entry for `step_key` means a warm
+            cache, its `eager_key` entry a measured eager step.
+        eager_s: a measured eager step (else the record's, else the cost model's).
     """
     kind = "cuda" if device == "cuda" else "cpu"
-    step = eager_step_seconds(cfg, kind)
-    left = max(0, cfg.train.iters - start_iteration) * step
-    if cfg.train.max_seconds > 0:
-        left = min(left, cfg.train.max_seconds)
-    saving = left * (1.0 - COMPILED_FRACTION[kind])
+    measured = eager_s or recorded_eager(record or {}, eager_key(cfg, kind))
+    step = measured or eager_step_seconds(cfg, kind)
+    saving = _steps_time(cfg, start_iteration, step) * (1.0 - COMPILED_FRACTION[kind])
     entry = (record or {}).get(step_key(as_compiled(cfg), kind))
     warm = isinstance(entry, dict) and entry.get("compiles", 0) > 0
     expected = COLD_COMPILE_S[kind]
@@ -154,8 +204,24 @@ def choose_compile(cfg: Config, device: str, start_iteration: int = 0,
         expected = WARM_COMPILE_S[kind]
         if entry.get("compiles", 0) > 1:  # its last compile was itself a warm one
             expected = max(1.0, float(entry.get("seconds", expected)))
+    if cfg.train.budget > 0:  # a cache miss must not eat a budget: count a cold compile
+        expected = max(expected, COLD_COMPILE_S[kind])
     return CompileChoice(compile=saving > expected, eager_step_s=step, saving_s=saving,
-                         compile_s=expected, warm=warm)
+                         compile_s=expected, warm=warm, measured=measured is not None)
+
+
+def _measured_eager(cfg: Config, device: str, start_iteration: int,
+                    measure: Callable[[], float] | None) -> float | None:
+    """`measure()` when the record has no eager step for `cfg` and measuring is worth it
+    (noted in the record), else None."""
+    kind = "cuda" if device == "cuda" else "cpu"
+    key = eager_key(cfg, kind)
+    if measure is None or recorded_eager(read_record(), key) is not None \
+            or not worth_measuring(cfg, kind, start_iteration):
+        return None
+    seconds = measure()
+    note_eager(key, seconds)
+    return seconds
 
 
 def _run_choice(run_dir: Path | None) -> bool | None:
@@ -182,12 +248,14 @@ def as_compiled(cfg: Config) -> Config:
 
 
 def resolve_compile(cfg: Config, device: str, start_iteration: int = 0,
-                    run_dir: Path | None = None) -> tuple[Config, str | None]:
+                    run_dir: Path | None = None,
+                    measure: Callable[[], float] | None = None) -> tuple[Config, str | None]:
     """`cfg` with ``train.compile`` a bool, and the line to print (None when it was one).
 
     ``auto`` keeps the choice a resumed run recorded in its ``config.yaml``; otherwise
-    `choose_compile` decides. Compiling with ``model.sdf.gradient=autograd`` switches the
-    gradient to ``analytic``.
+    `choose_compile` decides, on the eager step `measure()` times (called when the record
+    has none and `worth_measuring`; noted in the record). Compiling with
+    ``model.sdf.gradient=autograd`` switches the gradient to ``analytic``.
     """
     if cfg.train.compile != "auto":
         return cfg, None
@@ -196,7 +264,8 @@ def resolve_compile(cfg: Config, device: str, start_iteration: int = 0,
         on, line = recorded, (f"train.compile=auto: {'compiled' if recorded else 'eager'}, as "
                               "the run started")
     else:
-        choice = choose_compile(cfg, device, start_iteration, read_record())
+        choice = choose_compile(cfg, device, start_iteration, read_record(),
+                                _measured_eager(cfg, device, start_iteration, measure))
         on, line = choice.compile, choice.line()
     if not on:
         return dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, compile=False)), line

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -54,6 +55,8 @@ from neus_l0.run.resumes import (
     recorded_overrides,
 )
 from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.budget import ScheduleWarp
+from neus_l0.train.budget_run import EstimateLine, plan_run
 from neus_l0.train.cache_folder import use_persistent_cache
 from neus_l0.train.callbacks import (
     Checkpoints,
@@ -68,6 +71,7 @@ from neus_l0.train.callbacks import (
 )
 from neus_l0.train.compile import compiled_step
 from neus_l0.train.compile_auto import resolve_compile
+from neus_l0.train.early_stop import EarlyStop
 from neus_l0.train.preflight import (
     check_same_scene,
     check_step_memory,
@@ -76,10 +80,12 @@ from neus_l0.train.preflight import (
     device_memory,
     scene_fingerprint,
 )
+from neus_l0.train.probe import time_steps
 from neus_l0.train.signals import StopOnSignal
 from neus_l0.train.state import Clock, RunState
 from neus_l0.train.step import (
     METRIC_NAMES,
+    StepSetup,
     make_occupancy,
     make_optimizer,
     make_scaler,
@@ -101,7 +107,8 @@ class TrainResult:
         metrics: the last logged metrics (empty if none were logged).
         seconds: wall-clock time of this call, less the time spent in hooks and in
             writing snapshots.
-        stopped_early: whether `train.max_seconds` ended the run before `train.iters`.
+        stopped_early: whether `train.max_seconds` (or a budget's deadline) ended the run
+            before its last iteration.
         snapshots: one ``(mark, iteration, checkpoint)`` per snapshot mark of this call, in
             mark order (marks served by the same checkpoint repeat it).
         signal: ``SIGTERM`` / ``SIGINT`` when one stopped the run (after finishing the step
@@ -134,10 +141,48 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
                     resume: bool) -> RunState:
     """Networks, optimiser and generator, restored from the newest checkpoint on resume.
 
+    ``train.compile: auto`` is resolved here, on eager steps timed on the run itself when
+    the setting was never measured (`neus_l0.train.compile_auto`).
+
     Raises:
         NeusL0Error: nothing to resume, an existing run without `resume`, or a checkpoint
             that does not fit.
     """
+    ckpt, state = _found_checkpoint(scene, cfg, run_dir, device, resume)
+    fingerprint = (check_same_scene(run_dir, scene, state) if resume
+                   else scene_fingerprint(scene))
+    check_run_entries(run_dir)
+    scene = scene.to(device)
+    _check_space(scene, cfg, run_dir, device)  # before the hull or any step
+    setup = _static_setup(scene, cfg, run_dir)
+
+    def measure() -> float:
+        eager = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, compile=False))
+        return time_steps(_new_run(scene, eager, run_dir, device, setup), warm=1, most=3,
+                          seconds=5.0)
+
+    cfg, line = resolve_compile(cfg, device.type, checkpoint_iteration(ckpt) if ckpt else 0,
+                                run_dir, measure)
+    if line:
+        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
+    if cfg.train.compile:
+        use_persistent_cache()  # before the optimiser imports torch._dynamo (the CLI did it too)
+    run = _new_run(scene, cfg, run_dir, device, setup)
+    run.fingerprint = fingerprint
+    run.setup.compiled = compiled_step(render_and_loss, cfg, device)
+    if state is not None:
+        run.iteration, rays = restore_training(ckpt, state, run.model, run.optimizer,
+                                                run.generator, run.scaler, run.occupancy)
+        run.rays = rays or run.rays
+        run.last_checkpoint = ckpt
+        run.setup.warp = _resumed_warp(state, cfg)
+    return run
+
+
+def _found_checkpoint(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
+                      resume: bool) -> tuple[Path | None, dict | None]:
+    """The checkpoint to resume (None, None for a fresh run), after the run folder's checks
+    and the removal of a killed writer's leftovers."""
     if not resume and latest_checkpoint(run_dir) is not None:
         raise NeusL0Error(f"{run_dir}: already holds checkpoints; pass --resume to continue "
                           "or choose another --out")
@@ -150,43 +195,53 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     found = load_newest_checkpoint(run_dir, map_location=device) if resume else None
     if resume and found is None:
         raise NeusL0Error(f"{run_dir}: nothing to resume (no checkpoints/ckpt_*.pt)")
-    ckpt, state = found if found is not None else (None, None)
     _check_scene(scene, cfg)
-    fingerprint = (check_same_scene(run_dir, scene, state) if resume
-                   else scene_fingerprint(scene))
-    check_run_entries(run_dir)
-    cfg, line = resolve_compile(cfg, device.type, checkpoint_iteration(ckpt) if ckpt else 0,
-                                run_dir)
-    if cfg.train.compile:
-        use_persistent_cache()  # before the optimiser imports torch._dynamo (the CLI did it too)
-    scene = scene.to(device)
+    return found if found is not None else (None, None)
+
+
+def _check_space(scene: Scene, cfg: Config, run_dir: Path, device: torch.device) -> None:
+    """A step fits in memory (`check_step_memory`) and the run folder takes the checkpoints
+    the schedule keeps (`check_writable`)."""
+    t = cfg.train
+    saves = (t.iters // t.save_every if t.save_every else 0) + 1
+    kept = min(t.keep_checkpoints, saves) if t.keep_checkpoints else saves
     model = make_model(cfg, device)
     check_step_memory(model, cfg, device_memory(device))
-    if line:
-        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
+    check_writable(run_dir, (kept + 1) * checkpoint_bytes(model, make_optimizer(model, cfg)))
+
+
+def _static_setup(scene: Scene, cfg: Config, run_dir: Path) -> StepSetup:
+    """What the steps use and no network changes: the sampler, the static bounds and the
+    pixel pool."""
+    setup = StepSetup(sampler=build_sampler(cfg.sampler))  # once: a compiled draw compiles once
+    setup.bounds = static_bounds(scene, cfg, run_dir / "hull.pt",
+                                 reuse=latest_checkpoint(run_dir) is not None)
+    setup.pool = with_error_map(reachable_pixels(scene, cfg.render, setup.bounds,
+                                                 background=cfg.render.n_outside > 0),
+                                scene, cfg)
+    return setup
+
+
+def _new_run(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,
+             setup: StepSetup) -> RunState:
+    """A fresh `RunState` (networks from `train.seed`) sharing `setup`'s static parts."""
+    model = make_model(cfg, device)
     run = RunState(cfg=cfg, run_dir=run_dir, scene=scene, model=model,
                    optimizer=make_optimizer(model, cfg), scaler=make_scaler(cfg, device),
                    generator=torch.Generator(device=device),
                    occupancy=make_occupancy(cfg, device), rays=cfg.train.batch_size,
-                   fingerprint=fingerprint)
-    t = cfg.train
-    saves = (t.iters // t.save_every if t.save_every else 0) + 1
-    kept = min(t.keep_checkpoints, saves) if t.keep_checkpoints else saves
-    check_writable(run_dir, (kept + 1) * checkpoint_bytes(model, run.optimizer))
+                   setup=dataclasses.replace(setup, compiled=None, warp=None))
     run.generator.manual_seed(cfg.train.seed)
-    run.setup.sampler = build_sampler(cfg.sampler)  # once: a compiled draw compiles once
-    run.setup.bounds = static_bounds(scene, cfg, run_dir / "hull.pt",
-                                     reuse=latest_checkpoint(run_dir) is not None)
-    run.setup.pool = with_error_map(
-        reachable_pixels(scene, cfg.render, run.setup.bounds,
-                         background=model.background is not None), scene, cfg)
-    run.setup.compiled = compiled_step(render_and_loss, cfg, device)
-    if state is not None:
-        run.iteration, rays = restore_training(ckpt, state, model, run.optimizer,
-                                                run.generator, run.scaler, run.occupancy)
-        run.rays = rays or run.rays
-        run.last_checkpoint = ckpt
     return run
+
+
+def _resumed_warp(state: dict, cfg: Config) -> ScheduleWarp | None:
+    """The compressed schedule a budget run's checkpoint holds (None when it has none or
+    `train.iters` changed since)."""
+    if "schedule" not in state:
+        return None
+    warp = ScheduleWarp.from_dict(state["schedule"])
+    return warp if warp.base == cfg.train.iters else None
 
 
 def _write_run_files(run: RunState) -> None:
@@ -317,9 +372,25 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
         raise NeusL0Error(str(exc)) from None
     if Path(run_dir).exists() and not Path(run_dir).is_dir():
         raise NeusL0Error(f"{run_dir}: is a file, not a run folder (choose another --out)")
+    started = time.monotonic()
     with RunLock(run_dir), StopOnSignal() as stop:
         run = build_run_state(scene, cfg, Path(run_dir), torch.device(device), resume)
-        return _run_loop(run, own + list(callbacks), stop_at, stop)
+        return _run_loop(run, _with_budget(run, own, started, resume) + list(callbacks),
+                         stop_at, stop)
+
+
+def _with_budget(run: RunState, own: list[TrainingCallback], started: float,
+                 resume: bool) -> list[TrainingCallback]:
+    """`own` with a budget run's plan and keeper (`neus_l0.train.budget_run`) or the
+    duration estimate after it, and the early stop before it when `train.early_stop` is on
+    (its number joins the metrics line before it is written)."""
+    first = [EarlyStop()] if run.cfg.train.early_stop else []
+    if run.cfg.train.budget <= 0:
+        return [*first, *own, EstimateLine()]
+    if resume:
+        raise ConfigError(f"train.budget={run.cfg.train.budget:g}: a resumed run keeps the "
+                          "schedule its config.yaml recorded; resume without a budget")
+    return [*first, *own, plan_run(run, started)]
 
 
 def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
@@ -339,7 +410,7 @@ def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
     # where the run starts is good: a resumed checkpoint passed the watchdog before
     watchdog, diverged = Watchdog(last_good_iter=run.iteration or None), None
     run.model.train()
-    while run.iteration < t.iters:
+    while run.iteration < run.end:
         # step
         step = train_step(run.model, run.optimizer, run.scene, cfg, run.iteration,
                           run.generator, occupancy=run.occupancy, scaler=run.scaler,
@@ -348,7 +419,7 @@ def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
         steps += 1
         run.iteration += 1
         # log
-        if run.iteration % t.log_every == 0 or run.iteration == t.iters:
+        if run.iteration % t.log_every == 0 or run.iteration == run.end:
             metrics = metrics_line(run, acc, steps, step, window)
             reason = watch(run, watchdog, metrics)
             for cb in cbs:
@@ -362,9 +433,9 @@ def _run_loop(run: RunState, cbs: list[TrainingCallback], stop_at: int | None,
         for cb in cbs:
             cb.after_step(run)
         # stop
-        over_time = t.max_seconds and run.clock.elapsed() > t.max_seconds
+        over_time = (t.max_seconds and run.clock.elapsed() > t.max_seconds) or run.stop_requested
         if (over_time or stop.requested or (stop_at is not None and run.iteration >= stop_at)) \
-                and run.iteration < t.iters:
+                and run.iteration < run.end:
             stopped_early = True
             break
     for cb in cbs:

@@ -72,6 +72,14 @@ class RunState:
     good_checkpoint: Path | None = None  # while the watchdog suspects the run
     diverged: bool = False
     fingerprint: str = ""  # the scene's (`neus_l0.train.preflight.scene_fingerprint`)
+    stop_requested: bool = False  # a callback asks the loop to stop (a budget's deadline)
+
+    @property
+    def end(self) -> int:
+        """The iteration the run ends at: `train.iters`, or sooner when a budget run
+        compressed its schedule (`StepSetup.warp`)."""
+        warp = self.setup.warp
+        return warp.end if warp is not None else self.cfg.train.iters
 
     @property
     def device(self) -> torch.device:
@@ -109,6 +117,8 @@ class RunState:
             "has_background": self.model.background is not None,
             "scene_fingerprint": self.fingerprint,
         }
+        if self.setup.warp is not None and self.setup.warp.warped:
+            state["schedule"] = self.setup.warp.to_dict()
         if self.occupancy is not None:
             state["occupancy"] = self.occupancy.state_dict()
         if self.scaler.is_enabled():

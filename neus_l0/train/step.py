@@ -26,6 +26,7 @@ from neus_l0.fields.linear import clear_weight_cache
 from neus_l0.fields.model import NeuSModel
 from neus_l0.render.volume import RenderNoise, draw_noise, render_rays
 from neus_l0.sampling.upsample import Sampler, build_sampler
+from neus_l0.train.budget import ScheduleWarp
 from neus_l0.train.losses import LOSS_NAMES, eikonal_indices, neus_loss, ray_errors
 from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
@@ -81,7 +82,8 @@ def update_occupancy(grid: OccupancyGrid | None, model: NeuSModel, cfg: Config,
         grid.update(model.sdf.sdf, model.variance.inv_s())
 
 
-def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config, iteration: int) -> float:
+def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config,
+                      iteration: float) -> float:
     """Apply NeuS's schedule for `iteration` and return the learning rate."""
     t = cfg.train
     lr = t.lr * lr_factor(iteration, t.warm_up, t.iters, t.lr_alpha)
@@ -155,7 +157,7 @@ def _draw_pool(pool: PixelPool, n_rays: int, generator: torch.Generator,
     return draw(pool.error_map, n_rays, generator)
 
 
-def draw_step_inputs(scene: Scene, cfg: Config, iteration: int, n_rays: int,
+def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
                      generator: torch.Generator, pool: PixelPool | None) -> StepInputs:
     """Draw one step's rays and random numbers (`StepInputs`), in a fixed order."""
     span = pick = weight = None
@@ -216,12 +218,25 @@ class StepSetup:
         pool: draw the rays from these pixels only (`neus_l0.bounds.pixel_pool`; None: from
             all), by its error map when it has one.
         compiled: a compiled `render_and_loss` (`neus_l0.train.compile`; None: eager).
+        warp: real iteration -> the recorded schedule's iteration, when a budget run
+            compressed the rest of its schedule (`neus_l0.train.budget.ScheduleWarp`;
+            None: the identity).
     """
 
     bounds: tuple[RayBounds, ...] = ()
     sampler: Sampler | None = None
     pool: PixelPool | None = None
     compiled: Callable[..., tuple[Tensor, Tensor]] | None = None
+    warp: ScheduleWarp | None = None
+
+
+def set_level_steps(model: NeuSModel, steps: int) -> None:
+    """Set the hash grids' level counters (their schedule's iteration) to `steps`."""
+    from neus_l0.fields.encodings import HashGridEncoding
+
+    for m in model.modules():
+        if isinstance(m, HashGridEncoding) and m.start_level < m.n_levels:
+            m.steps.fill_(steps)
 
 
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
@@ -254,11 +269,15 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     """
     # learning rate, batch and random numbers, grid update
     setup = setup or StepSetup()
-    set_learning_rate(optimizer, cfg, iteration)
+    at = iteration  # the schedule's iteration: the real one unless a budget compressed it
+    if setup.warp is not None and setup.warp.warped:
+        at = setup.warp.at(iteration)
+        set_level_steps(model, int(at))
+    set_learning_rate(optimizer, cfg, at)
     emap = setup.pool.error_map if setup.pool is not None else None
     if emap is not None and iteration % cfg.train.log_every == 0:
         refresh_table(emap)  # the draw table follows the map at log steps
-    inputs = draw_step_inputs(scene, cfg, iteration, batch_size or cfg.train.batch_size,
+    inputs = draw_step_inputs(scene, cfg, at, batch_size or cfg.train.batch_size,
                               generator, setup.pool)
     update_occupancy(occupancy, model, cfg, iteration)
     # the static bounds are in the looked-up spans when the pool kept them

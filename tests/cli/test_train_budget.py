@@ -1,0 +1,52 @@
+"""`neus-l0 train --budget`: bad budgets get one line; a budget run on the tiny scene ends
+within its budget, end to end, with its schedule finished."""
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from neus_l0.cli import main
+from neus_l0.config.load import load_config
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.mark.parametrize("bad", ["0", "-5", "abc", "1e9"])
+def test_bad_budgets_get_one_clear_line(bad, tiny_scene, tmp_path, capsys):
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "r"), f"--budget={bad}",
+                 "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--budget" in err[0], err
+    assert not (tmp_path / "r" / "checkpoints").exists()
+
+
+def test_a_budget_with_resume_is_refused(tiny_scene, tmp_path, capsys):
+    assert main(["train", str(tiny_scene), "--out", str(tmp_path / "r"), "--budget", "1m",
+                 "--resume", "--quiet"]) == 2
+    assert "resume without --budget" in capsys.readouterr().err
+
+
+def test_a_budget_run_ends_within_its_budget(tiny_scene, tmp_path):
+    budget = 60.0
+    run = tmp_path / "run"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-m", "neus_l0", "train", str(tiny_scene),
+                          "--out", str(run), "--budget", f"{budget:g}s", "--threads", "1",
+                          "--quiet"], capture_output=True, text=True, env=env, cwd=ROOT)
+    wall = time.monotonic() - t0
+    assert out.returncode == 0, out.stderr
+    assert wall <= budget, (wall, out.stderr)
+    assert "buys" in out.stderr and "end to end" in out.stdout
+    recorded = load_config(run / "config.yaml")
+    plan = json.loads((run / "budget.json").read_text())
+    assert recorded.train.budget == 0 and recorded.train.iters == plan["planned_iters"]
+    last = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()][-1]
+    # the schedule finished: at its (possibly compressed) end, the final learning rate
+    assert last["iter"] == plan["done_iters"]
+    assert last["lr"] == pytest.approx(recorded.train.lr * recorded.train.lr_alpha, rel=0.05)
