@@ -8,7 +8,8 @@ render a different scene's cameras. It lives in ``render/`` and reads ``run/`` (
 only config, fields and the root modules, so no cycle); nothing here imports training.
 
 Layout of the output folder ``DIR``: ``color/0000.png``, ``normal/0000.png``,
-``depth/0000.png`` (one per frame), ``color.mp4``, ``normal.mp4``, ``depth.mp4`` and, for
+``depth/0000.png`` (one per frame), ``color.mp4``, ``normal.mp4``, ``depth.mp4`` (H.264,
+`neus_l0.render.video`) and, for
 views with ground truth, ``metrics.json``.
 """
 
@@ -38,6 +39,7 @@ from neus_l0.render.cameras import (
     orbit_from_training,
     resize_intrinsics,
 )
+from neus_l0.render.video import Mp4Writer, check_video
 from neus_l0.render.views import (
     ViewRender,
     depth_picture,
@@ -278,62 +280,6 @@ def check_out(out: Path) -> Path:
     return out
 
 
-class _Video:
-    """An MP4 (fourcc ``mp4v``) written to a temporary path, checked when finished.
-
-    Odd sizes are padded by one edge pixel (the codec needs even sides).
-    """
-
-    def __init__(self, path: Path, size: tuple[int, int], fps: float) -> None:
-        H, W = size
-        self.path, self.size = path, (H + H % 2, W + W % 2)
-        self.writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps,
-                                      (self.size[1], self.size[0]))
-        if not self.writer.isOpened():
-            raise NeusL0Error(f"{path}: OpenCV cannot write an mp4v video here (use "
-                              "--no-video)")
-        self.count = 0
-
-    def write(self, rgb: np.ndarray) -> None:
-        """Append an (H, W, 3) uint8 RGB frame."""
-        H, W = rgb.shape[:2]
-        bgr = cv2.copyMakeBorder(np.ascontiguousarray(rgb[..., ::-1]), 0, self.size[0] - H, 0,
-                                 self.size[1] - W, cv2.BORDER_REPLICATE)
-        self.writer.write(bgr)
-        self.count += 1
-
-    def finish(self, name: Path) -> None:
-        """Close the file and check it reads back with all its frames (`check_video`)."""
-        self.writer.release()
-        check_video(self.path, self.count, self.size, name)
-
-
-def check_video(path: Path, n_frames: int, size: tuple[int, int], name: Path | None = None
-                ) -> None:
-    """Open an MP4 with ``cv2.VideoCapture`` and count its (H, W) = `size` frames.
-
-    Raises:
-        NeusL0Error: it does not open, or has another frame count or size.
-    """
-    name = name or path
-    cap = cv2.VideoCapture(str(path))
-    try:
-        if not cap.isOpened():
-            raise NeusL0Error(f"{name}: the written video does not open with OpenCV (use "
-                              "--no-video and encode the PNGs with ffmpeg)")
-        n, shapes = 0, set()
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            n, shapes = n + 1, shapes | {frame.shape[:2]}
-    finally:
-        cap.release()
-    if n != n_frames or shapes - {tuple(size)}:
-        raise NeusL0Error(f"{name}: the written video reads back as {n} frames of "
-                          f"{sorted(shapes)}, not {n_frames} of {tuple(size)} (use --no-video)")
-
-
 def _pictures(view: ViewRender, near_far: tuple[float, float]) -> dict[str, np.ndarray]:
     """The (H, W, 3) uint8 RGB picture of each channel."""
     return {"color": to_uint8(view.color), "normal": normal_picture(view.normal),
@@ -384,8 +330,8 @@ def _render_frames(model, cfg, path: CameraPath, scene: Scene, out: Path,
         videos = {}
         for ch in CHANNELS if options.video else ():
             tmp = stack.enter_context(atomic_path(out / f"{ch}.mp4"))
-            videos[ch] = _Video(tmp, path.size, options.fps)
-            stack.callback(videos[ch].writer.release)  # before the rename / removal
+            videos[ch] = Mp4Writer(tmp, path.size, options.fps)
+            stack.callback(videos[ch].close)  # before the rename / removal
         for i in tqdm(range(n), desc="render", unit="frame", disable=not progress):
             K = torch.as_tensor(path.K[i], dtype=torch.float32, device=device)
             c2w = torch.as_tensor(path.c2w[i], dtype=torch.float32, device=device)
@@ -400,7 +346,8 @@ def _render_frames(model, cfg, path: CameraPath, scene: Scene, out: Path,
                 per_view.append({"frame": i, "view": v, "image": scene.image_names[v],
                                  **view_metrics(view.color, gt, mask)})
         for ch, video in videos.items():
-            video.finish(out / f"{ch}.mp4")
+            video.close()
+            check_video(video.path, video.count, video.size, out / f"{ch}.mp4")
     for ch in CHANNELS:
         _remove_stale_frames(out / ch, n)
     return {ch: out / f"{ch}.mp4" for ch in videos}, per_view
