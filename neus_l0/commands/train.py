@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from neus_l0.commands._overrides import accept_overrides
+from neus_l0.config.load import conf_names
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
@@ -21,7 +22,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="scene folder (image/, mask/, cameras_sphere.npz; or transforms.json)")
     p.add_argument("--conf", default="wmask",
                    help="config: a YAML path, confs/NAME.yaml or a built-in NAME "
-                        "(wmask, womask, demo); default wmask")
+                        f"({', '.join(conf_names())}); default wmask")
     p.add_argument("--out", required=True, metavar="RUN", help="run folder to write")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"],
                    help="default: cuda when available")
@@ -39,6 +40,14 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads (default: train.threads, else the cores free when "
                         "training starts, from the load average)")
+    p.add_argument("--holdout", type=int, default=None, metavar="K",
+                   help="keep every K-th view (0, K, 2K, ...) out of training (train.holdout; "
+                        "recorded in RUN/run.json; `neus-l0 render RUN --views test` renders "
+                        "them)")
+    p.add_argument("--viewer", type=int, nargs="?", const=8080, default=None, metavar="PORT",
+                   help="serve the run's page live on 127.0.0.1:PORT (8080): metrics every "
+                        "train.log_every, a coarse mesh every train.val_every (see neus-l0 "
+                        "view)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     accept_overrides(p)
     return p
@@ -57,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.train.loop import train
 
     run_dir = check_output_dir(args.out, "--out")
+    if args.holdout is not None:
+        args.overrides = [*args.overrides, f"train.holdout={args.holdout}"]
     if args.resume and (run_dir / "config.yaml").is_file():
         cfg = _resumed_config(run_dir, args.overrides, args.change_config)
     else:
@@ -71,8 +82,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"neus-l0 train: {threads} torch thread{'s' if threads > 1 else ''} ({how}; "
               "--threads N to set)", file=sys.stderr, flush=True)
     scene = open_scene(args.data, downscale=cfg.data.downscale, device=device)
+    callbacks = []
+    if args.viewer is not None:
+        from neus_l0.viewer.live import LiveViewer
+
+        callbacks.append(LiveViewer(args.viewer))
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
-                   progress=not args.quiet, stop_at=args.stop_at)
+                   progress=not args.quiet, stop_at=args.stop_at, callbacks=callbacks)
     if result.signal:
         print(f"neus-l0 train: stopped by {result.signal} at iteration {result.iteration}; "
               f"checkpoint {result.checkpoint} written; continue with: neus-l0 train "
@@ -84,9 +100,20 @@ def run(args: argparse.Namespace) -> int:
                  and result.iteration >= args.stop_at else "stopped at the time budget")
     print(f"{state}: {result.iteration} iterations in {result.seconds:.0f} s; "
           f"checkpoint {result.checkpoint}")
-    print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/, "
-          f"TensorBoard events: tensorboard --logdir {run_dir})")
+    print(f"run folder: {run_dir}  ({', '.join(_run_files(run_dir))}; "
+          f"see it: neus-l0 view {run_dir})")
     return 0
+
+
+def _run_files(run_dir) -> list[str]:
+    """What the run folder holds, as the end-of-training line lists it."""
+    names = ["config.yaml", "metrics.jsonl"]
+    if any((run_dir / "validation").glob("*.png")):
+        names.append("validation/")
+    names.append("checkpoints/")
+    if any(run_dir.glob("events.out.tfevents.*")):
+        names.append(f"TensorBoard events: tensorboard --logdir {run_dir}")
+    return names
 
 
 def _resumed_config(run_dir, overrides: list[str], change: bool):

@@ -218,6 +218,41 @@ def select_views(n_views: int, options: RenderOptions) -> list[int]:
     return train
 
 
+def run_views(run_dir: Path) -> dict | None:
+    """The views record of ``RUN/run.json`` (``{"holdout", "n_views", "train", "heldout"}``,
+    `neus_l0.data.split.holdout_split`); None without run.json. A run.json from before the
+    record is a run trained on every view: ``{"holdout": 0, "heldout": []}``."""
+    path = run_dir / "run.json"
+    if not path.is_file():
+        return None
+    meta = json.loads(path.read_text(encoding="utf-8"))
+    return meta.get("views") or {"holdout": 0, "heldout": []}
+
+
+def resolve_held_out(options: RenderOptions, record: dict | None, run_dir: Path,
+                     n_views: int) -> tuple[RenderOptions, list[int]]:
+    """The options with the run's own held-out views, and the rendered views it trained on.
+
+    Without ``--test-views`` / ``--holdout`` the held-out views are the run's
+    (``train.holdout``); with them, the views asked for, and those of them that the run
+    trained on are returned, so that their metrics are not called held-out.
+
+    Raises:
+        NeusL0Error: ``--views test`` on a run trained on every view, without those flags.
+    """
+    held = list((record or {}).get("heldout") or [])
+    if options.test_views is None and not options.holdout:
+        if options.views == "test" and not held:
+            raise NeusL0Error(f"{run_dir}: trained on every view, so it has no held-out views "
+                              "for --views test (train with --holdout K, or render --views "
+                              "train)")
+        return (dataclasses.replace(options, test_views=tuple(held)) if held else options), []
+    if options.views != "test":
+        return options, []
+    trained = set(range(n_views)) - set(held) if record is not None else set()
+    return options, sorted(trained & set(select_views(n_views, options)))
+
+
 def camera_path(scene: Scene, options: RenderOptions) -> CameraPath:
     """The cameras `options` asks for, with intrinsics scaled to the output size.
 
@@ -363,7 +398,10 @@ def render_run(run_dir: str | Path, out: str | Path | None = None,
     rays narrowed by the run's visual hull (``RUN/hull.pt``) when it has one. Views with
     ground truth (train / test) get PSNR, SSIM (and the PSNR inside the mask with masks)
     against the scene's images, area-resized to the output size; they are written to
-    ``OUT/metrics.json``.
+    ``OUT/metrics.json``. ``views="test"`` renders the run's held-out views
+    (``train.holdout``, recorded in ``run.json``) and refuses a run trained on every view;
+    views given by `options` that the run trained on are labelled ``"views": "train"``
+    (``"held_out": false``, ``"trained_on"``), never held-out.
 
     Args:
         run_dir: the run folder (``checkpoints/``, ``run.json``, optional ``hull.pt``).
@@ -387,6 +425,7 @@ def render_run(run_dir: str | Path, out: str | Path | None = None,
     out = Path(out) if out is not None else run_dir / "render" / options.views
     model, cfg, info = load_trained_model(run_dir, device, options.checkpoint)
     scene = run_scene(run_dir, options, cfg.data.downscale)
+    options, trained = resolve_held_out(options, run_views(run_dir), run_dir, scene.n_views)
     path = camera_path(scene, options)
     check_out(out)
     hull = load_run_hull(run_dir, device)
@@ -396,7 +435,9 @@ def render_run(run_dir: str | Path, out: str | Path | None = None,
     seconds = time.monotonic() - t0
     metrics = None
     if path.views is not None:
-        metrics = {"views": options.views, "frames": len(per_view), "width": path.size[1],
+        label = "train" if trained else options.views
+        metrics = {"views": label, "held_out": label == "test", "trained_on": trained,
+                   "frames": len(per_view), "width": path.size[1],
                    "height": path.size[0], "checkpoint": str(info["path"]),
                    "iteration": int(info["iteration"]), **mean_metrics(per_view),
                    "per_view": per_view}

@@ -71,6 +71,8 @@ class RunState:
     protect_snapshots: bool = False
     good_checkpoint: Path | None = None  # while the watchdog suspects the run
     diverged: bool = False
+    heldout: Scene | None = None  # the views kept out of training (train.holdout)
+    views: dict = dataclasses.field(default_factory=dict)  # `holdout_split`'s record
 
     @property
     def device(self) -> torch.device:
