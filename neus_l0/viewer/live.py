@@ -2,8 +2,9 @@
 
 The training thread only hands over work: at each log step a note that new metrics are in
 ``metrics.jsonl``, and every ``train.val_every`` steps a CPU copy of the networks' weights.
-One worker thread does the rest (reading the metrics, building a coarse mesh from the copy,
-updating the page), taking only the newest of each kind of work when it falls behind.
+One worker thread, at the lowest CPU priority, does the rest (reading the metrics, building a
+coarse mesh from the copy, updating the page), taking only the newest of each kind of work
+when it falls behind.
 """
 
 from __future__ import annotations
@@ -48,6 +49,18 @@ def coarse_mesh(cfg, weights: dict, scale_mat: np.ndarray, hull, resolution: int
         return None
 
 
+def lowest_priority() -> None:
+    """Give the calling thread the lowest CPU priority (nice 19) where the OS allows one
+    thread its own (Linux); elsewhere nothing."""
+    import os
+
+    if sys.platform.startswith("linux") and hasattr(os, "setpriority"):
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+        except OSError:
+            pass
+
+
 class LiveViewer(TrainingCallback):
     """Serves the run's page while it trains (see the module docstring).
 
@@ -63,13 +76,14 @@ class LiveViewer(TrainingCallback):
         self.page: RunPage | None = None
         self.worker: threading.Thread | None = None
         self.state = PageState(follow=False)
+        self.stopping = threading.Event()
 
     def on_start(self, run: RunState) -> None:
         self.page = RunPage(run.run_dir.name, self.host, self.port)
         print(reach_line(self.host, self.page.port), file=sys.stderr, flush=True)
         scale = np.asarray(run.scene.scale_mat, np.float64)
         self.worker = threading.Thread(target=self._work, name="neus-l0-viewer", daemon=True,
-                                       args=(run.run_dir, run.cfg, scale), )
+                                       args=(run.run_dir, run.cfg, scale))
         self.worker.start()
 
     def on_log(self, run: RunState, metrics: dict) -> None:
@@ -82,14 +96,28 @@ class LiveViewer(TrainingCallback):
             self.jobs.put(("mesh", run.iteration, weights))
 
     def on_end(self, run: RunState) -> None:
+        """Stop the worker (a mesh it is building is dropped) and the page."""
+        self.stopping.set()
         self.jobs.put(("stop", run.iteration, None))
         if self.worker is not None:
-            self.worker.join(timeout=30)
+            self.worker.join(timeout=1.0)
         if self.page is not None:
             self.page.close()
 
     def _work(self, run_dir: Path, cfg, scale_mat: np.ndarray) -> None:
-        """The worker thread: cameras once, then the newest log and mesh work."""
+        """The worker thread, at the lowest CPU priority (Linux: a thread's own nice value),
+        so that training keeps its core when the cores are busy; once training ends, what
+        it was doing no longer matters."""
+        lowest_priority()
+        try:
+            self._serve(run_dir, cfg, scale_mat)
+        except Exception as exc:  # the page is closing under it, or a bad frame
+            if not self.stopping.is_set():
+                print(f"neus-l0 viewer: stopped updating ({type(exc).__name__}: {exc})",
+                      file=sys.stderr, flush=True)
+
+    def _serve(self, run_dir: Path, cfg, scale_mat: np.ndarray) -> None:
+        """Cameras once, then the newest log and mesh work until told to stop."""
         from neus_l0.bounds.hull import load_run_hull
 
         page = self.page
@@ -100,6 +128,8 @@ class LiveViewer(TrainingCallback):
             while not self.jobs.empty():
                 batch.append(self.jobs.get_nowait())
             kinds = {kind: (it, data) for kind, it, data in batch}
+            if "stop" in kinds or self.stopping.is_set():
+                return
             if "mesh" in kinds:
                 it, weights = kinds["mesh"]
                 mesh = coarse_mesh(cfg, weights, scale_mat, hull, self.resolution)
@@ -108,5 +138,3 @@ class LiveViewer(TrainingCallback):
             if "log" in kinds or "mesh" in kinds:
                 refresh(page, run_dir, self.state, self.resolution)
                 page.set_status(status_markdown(run_dir, self.state.shown))
-            if "stop" in kinds:
-                return
