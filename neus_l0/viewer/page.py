@@ -10,6 +10,8 @@ file by path. viser's "share URL" (a tunnel to share.viser.studio) is switched o
 
 from __future__ import annotations
 
+import contextlib
+import io
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -47,7 +49,8 @@ class RunPage:
     def __init__(self, title: str, host: str = "127.0.0.1", port: int = 8080) -> None:
         import viser
 
-        self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser's own address box
+            self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         self.server.request_share_url = lambda verbose=True: None  # no tunnel off the machine
         self.server.gui.configure_theme(show_share_button=False, show_logo=False,
                                         control_width="large")
@@ -214,7 +217,8 @@ class RunPage:
 
     def close(self) -> None:
         """Stop the server."""
-        self.server.stop()
+        with contextlib.redirect_stdout(io.StringIO()):
+            self.server.stop()
 
 
 def _rotation(wxyz: np.ndarray) -> np.ndarray:
