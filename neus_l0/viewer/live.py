@@ -67,11 +67,13 @@ class LiveViewer(TrainingCallback):
     Args:
         port: where the page listens (0: a free one); host: the address.
         resolution: marching-cubes cells per axis of the live mesh.
+        finish: at the end of training, finish the pending work (the last mesh) before the
+            page closes, instead of dropping it.
     """
 
     def __init__(self, port: int = 8080, host: str = "127.0.0.1",
-                 resolution: int = LIVE_RESOLUTION) -> None:
-        self.port, self.host, self.resolution = port, host, resolution
+                 resolution: int = LIVE_RESOLUTION, finish: bool = False) -> None:
+        self.port, self.host, self.resolution, self.finish = port, host, resolution, finish
         self.jobs: queue.Queue = queue.Queue()
         self.page: RunPage | None = None
         self.worker: threading.Thread | None = None
@@ -96,11 +98,12 @@ class LiveViewer(TrainingCallback):
             self.jobs.put(("mesh", run.iteration, weights))
 
     def on_end(self, run: RunState) -> None:
-        """Stop the worker (a mesh it is building is dropped) and the page."""
-        self.stopping.set()
+        """Stop the worker (a mesh it is building is dropped unless `finish`) and the page."""
+        if not self.finish:
+            self.stopping.set()
         self.jobs.put(("stop", run.iteration, None))
         if self.worker is not None:
-            self.worker.join(timeout=1.0)
+            self.worker.join(timeout=300.0 if self.finish else 1.0)
         if self.page is not None:
             self.page.close()
 
@@ -128,7 +131,7 @@ class LiveViewer(TrainingCallback):
             while not self.jobs.empty():
                 batch.append(self.jobs.get_nowait())
             kinds = {kind: (it, data) for kind, it, data in batch}
-            if "stop" in kinds or self.stopping.is_set():
+            if self.stopping.is_set():
                 return
             if "mesh" in kinds:
                 it, weights = kinds["mesh"]
@@ -138,3 +141,5 @@ class LiveViewer(TrainingCallback):
             if "log" in kinds or "mesh" in kinds:
                 refresh(page, run_dir, self.state, self.resolution)
                 page.set_status(status_markdown(run_dir, self.state.shown))
+            if "stop" in kinds:
+                return

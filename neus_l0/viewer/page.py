@@ -148,8 +148,8 @@ class RunPage:
         with self.lock:
             for title, series in data.items():
                 keys = tuple(series)
-                xs = np.unique(np.concatenate([series[k][0] for k in keys]))
-                cols = [np.interp(xs, *series[k], left=np.nan, right=np.nan) for k in keys]
+                xs = series[keys[0]][0]  # the keys of a title are logged on the same lines
+                cols = [np.interp(xs, *series[k]) for k in keys]
                 arrays = (xs, *cols)
                 old = self.plots.get(title)
                 if old is not None and old[0] == keys:

@@ -23,7 +23,8 @@ from neus_l0.run.metrics import read_lines
 #: Curves of the page: title -> the metrics keys drawn in it.
 CURVES: dict[str, tuple[str, ...]] = {
     "loss": ("loss", "color_loss", "eikonal_loss"),
-    "PSNR (dB)": ("psnr", "val_psnr"),
+    "PSNR (dB)": ("psnr",),
+    "validation PSNR (dB)": ("val_psnr",),
     "sharpness inv_s": ("inv_s",),
     "learning rate": ("lr",),
 }

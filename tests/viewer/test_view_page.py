@@ -21,7 +21,7 @@ import pytest
 from neus_l0.config.load import load_config
 from neus_l0.formats.open import open_scene
 from neus_l0.train.loop import train
-from neus_l0.viewer.browser import find_chromium, open_page
+from neus_l0.viewer.browser import HIDE_NOTICES, find_chromium, open_page
 from neus_l0.viewer.page import reach_line
 from neus_l0.viewer.run_files import last_psnr, read_rgb
 
@@ -60,7 +60,8 @@ def test_the_page_shows_the_mesh_and_the_last_psnr_from_the_loopback(tiny_run, t
     proc, port = _serve(tiny_run)
     try:
         shot = open_page(f"http://127.0.0.1:{port}/", tmp_path / "viewer.png",
-                         wait_text=f"{value:.2f} dB", settle=3.0, timeout=45)
+                         wait_text=f"{value:.2f} dB", evaluate=HIDE_NOTICES, settle=3.0,
+                         timeout=45)
     finally:
         proc.terminate()
         try:
