@@ -84,3 +84,20 @@ def test_another_address_says_who_can_reach_it():
     assert "this machine only" in reach_line("127.0.0.1", 8080)
     line = reach_line("0.0.0.0", 8080)
     assert "every machine that can reach this one" in line and "\n" not in line
+
+
+def test_the_page_serves_no_file_by_path():
+    import http.client
+
+    from neus_l0.viewer.page import RunPage
+
+    page = RunPage("x", "127.0.0.1", 0)
+    try:
+        for path, status in (("/", 200), ("/../../../../etc/passwd", 404),
+                             ("/%2e%2e/%2e%2e/%2e%2e/etc/passwd", 404), ("/run.json", 404)):
+            conn = http.client.HTTPConnection("127.0.0.1", page.port, timeout=10)
+            conn.request("GET", path)
+            got = conn.getresponse()
+            assert (got.status, b"root:" in got.read()) == (status, False), path
+    finally:
+        page.close()
