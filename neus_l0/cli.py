@@ -34,6 +34,7 @@ COMMANDS: list[tuple[str, str]] = [
     ("train", "train"),
     ("mesh", "mesh"),
     ("render", "render"),
+    ("view", "view"),
     ("eval", "evaluate"),
     ("bench", "bench"),
     ("figures", "figures"),

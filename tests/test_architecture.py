@@ -128,7 +128,7 @@ FLOORS: tuple[tuple[str, ...], ...] = (
     ("bounds",),
     ("render", "run", "formats", "evaluation"),
     ("train", "mesh", "photos"),
-    ("figures", "experiments"),
+    ("figures", "experiments", "viewer"),
     ("pipelines",),
     ("commands", "cli", "__main__"),
 )

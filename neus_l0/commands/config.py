@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from neus_l0.commands._overrides import accept_overrides
+from neus_l0.config.load import conf_names
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
@@ -15,7 +16,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("action", choices=["show"], help="show: print the resolved config")
     p.add_argument("--conf", default="wmask",
                    help="config: a YAML path, confs/NAME.yaml or a built-in NAME "
-                        "(wmask, womask, demo, fast); default wmask")
+                        f"({', '.join(conf_names())}); default wmask")
+    p.add_argument("--full", action="store_true",
+                   help="each key's whole description, wrapped under it (default: its first "
+                        "sentence on one line, cut at 110 characters)")
     accept_overrides(p)
     return p
 
@@ -27,5 +31,5 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.conf, args.overrides)
     print(f"# {resolve_conf_path(args.conf)}" +
           (f" with {' '.join(args.overrides)}" if args.overrides else ""))
-    print(format_listing(cfg))
+    print(format_listing(cfg, full=args.full))
     return 0

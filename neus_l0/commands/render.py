@@ -22,7 +22,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="output folder (default RUN/render/VIEWS)")
     p.add_argument("--views", default="orbit", choices=["orbit", "train", "test"],
                    help="orbit: turntable around the object (default); train: the training "
-                        "cameras; test: the held-out views (--test-views or --holdout)")
+                        "cameras; test: the views the run held out (train --holdout K)")
     p.add_argument("--frames", type=int, default=60, help="orbit frames (60)")
     p.add_argument("--elevation", type=float, default=None, metavar="DEG",
                    help="orbit elevation in degrees (default the training cameras' mean)")
@@ -34,9 +34,11 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="output = training image size / S (instead of --width/--height; "
                         "default: the training size)")
     p.add_argument("--test-views", default=None, metavar="I,J,...",
-                   help="held-out view indices, e.g. 0,8,16")
+                   help="views to render as test views, e.g. 0,8,16 (default: the run's "
+                        "held-out views; views it trained on are labelled train views)")
     p.add_argument("--holdout", type=int, default=0, metavar="K",
-                   help="hold out every K-th view (views 0, K, 2K, ...; as `neus-l0 bench`)")
+                   help="test views: every K-th (views 0, K, 2K, ...; as `train --holdout`; "
+                        "default: the run's own)")
     p.add_argument("--scene", default=None, metavar="DIR",
                    help="scene folder (default the one RUN/run.json names)")
     p.add_argument("--checkpoint", default=None,
@@ -93,6 +95,10 @@ def run(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     use_threads(args.threads, device)
     result = render_run(args.run, out, options, device, progress=not args.quiet)
+    if result.metrics and result.metrics["trained_on"]:
+        views = ", ".join(map(str, result.metrics["trained_on"]))
+        print(f"neus-l0 render: views {views} were trained on: their metrics are train views, "
+              "not held-out (train with --holdout K for held-out views)", file=sys.stderr)
     H, W = result.size
     print(f"neus-l0 render: {result.frames} frames of {W}x{H} in {result.seconds:.1f} s "
           f"({result.seconds / max(result.frames, 1):.2f} s/frame) -> {result.out}",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from neus_l0.commands._overrides import accept_overrides
+from neus_l0.config.load import conf_names
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:
@@ -21,7 +22,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="scene folder (image/, mask/, cameras_sphere.npz; or transforms.json)")
     p.add_argument("--conf", default=None,
                    help="config: a YAML path, confs/NAME.yaml or a built-in NAME "
-                        "(demo, fast, wmask, womask); default: the device's setting, demo "
+                        f"({', '.join(conf_names())}); default: the device's setting, demo "
                         "on a CPU, fast on CUDA, with its capacity for --budget "
                         "(wmask/womask are NeuS's reference settings)")
     p.add_argument("--budget", default=None, metavar="TIME",
@@ -46,6 +47,14 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads (default: train.threads, else the cores free when "
                         "training starts, from the load average)")
+    p.add_argument("--holdout", type=int, default=None, metavar="K",
+                   help="keep every K-th view (0, K, 2K, ...) out of training (train.holdout; "
+                        "recorded in RUN/run.json; `neus-l0 render RUN --views test` renders "
+                        "them)")
+    p.add_argument("--viewer", type=int, nargs="?", const=8080, default=None, metavar="PORT",
+                   help="serve the run's page live on 127.0.0.1:PORT (8080): metrics every "
+                        "train.log_every, a coarse mesh every train.val_every (see neus-l0 "
+                        "view)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     accept_overrides(p)
     return p
@@ -66,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
         fresh_config,
         process_seconds,
         resumed_config,
+        run_files,
         with_budget,
     )
 
@@ -74,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
                           "without --resume it does nothing: add --resume, or drop it")
     check_not_input(args.out, "--out", [args.data])
     run_dir = check_output_dir(args.out, "--out", RUN_RECORDS, RUN_LEFTOVERS, "a run folder")
+    if args.holdout is not None:
+        args.overrides = [*args.overrides, f"train.holdout={args.holdout}"]
     device = pick_device(args.device)
     if args.resume and args.budget is not None:
         raise NeusL0Error(f"--budget {args.budget}: a resumed run keeps the schedule its "
@@ -95,8 +107,13 @@ def run(args: argparse.Namespace) -> int:
     asked = cfg.train.budget
     if asked > 0:  # train() counts from its call: hand it what start-up left
         cfg = with_budget(cfg, asked - process_seconds())
+    callbacks = []
+    if args.viewer is not None:
+        from neus_l0.viewer.live import LiveViewer
+
+        callbacks.append(LiveViewer(args.viewer))
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
-                   progress=not args.quiet, stop_at=args.stop_at)
+                   progress=not args.quiet, stop_at=args.stop_at, callbacks=callbacks)
     if result.signal:
         print(f"neus-l0 train: stopped by {result.signal} at iteration {result.iteration}; "
               f"checkpoint {result.checkpoint} written; continue with: neus-l0 train "
@@ -112,6 +129,6 @@ def run(args: argparse.Namespace) -> int:
         took = process_seconds()
         print(f"budget {asked:.0f} s: the run took {took:.1f} s end to end "
               f"({100 * took / asked:.0f} % of it)")
-    print(f"run folder: {run_dir}  (config.yaml, metrics.jsonl, validation/, checkpoints/, "
-          f"TensorBoard events: tensorboard --logdir {run_dir})")
+    print(f"run folder: {run_dir}  ({', '.join(run_files(run_dir))}; "
+          f"see it: neus-l0 view {run_dir})")
     return 0

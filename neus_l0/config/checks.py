@@ -125,6 +125,7 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "log_every"): at_least(1),
     (TrainConfig, "val_every"): at_least(0, "0: never"),
     (TrainConfig, "val_downscale"): at_least(1),
+    (TrainConfig, "holdout"): at_least(0, "0: train on every view"),
     (TrainConfig, "save_every"): at_least(0, "0: only at the end"),
     (TrainConfig, "keep_checkpoints"): at_least(0, "0: keep all"),
     (TrainConfig, "max_seconds"): at_least(0, "0: no time limit"),

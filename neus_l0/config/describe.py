@@ -49,9 +49,10 @@ def first_sentence(text: str, limit: int = 110) -> str:
     return out if len(out) <= limit else out[:limit - 3].rstrip() + "..."
 
 
-def describe(cfg: Any, prefix: str = "") -> list[tuple[str, Any, str]]:
-    """(dotted key, value, one-line meaning) of every leaf of a config dataclass, in the
-    schema's order."""
+def describe(cfg: Any, prefix: str = "", full: bool = False) -> list[tuple[str, Any, str]]:
+    """(dotted key, value, meaning) of every leaf of a config dataclass, in the schema's
+    order; the meaning is the docstring's first sentence, cut to one line, or (`full`) the
+    whole docstring."""
     rows = []
     hints = typing.get_type_hints(type(cfg))
     docs = field_docs()
@@ -59,17 +60,26 @@ def describe(cfg: Any, prefix: str = "") -> list[tuple[str, Any, str]]:
         value = getattr(cfg, f.name)
         key = prefix + f.name
         if dataclasses.is_dataclass(hints[f.name]) and dataclasses.is_dataclass(value):
-            rows += describe(value, key + ".")
+            rows += describe(value, key + ".", full)
         else:
-            rows.append((key, value, first_sentence(docs.get((type(cfg).__name__, f.name), ""))))
+            doc = docs.get((type(cfg).__name__, f.name), "")
+            rows.append((key, value, doc if full else first_sentence(doc)))
     return rows
 
 
-def format_listing(cfg: Config) -> str:
-    """The resolved config as ``key: value  # meaning`` lines, values in YAML flow style."""
+def format_listing(cfg: Config, full: bool = False) -> str:
+    """The resolved config as ``key: value  # meaning`` lines, values in YAML flow style;
+    `full`: each key's whole description, wrapped under it, instead of one cut line."""
+    import textwrap
+
     import yaml
 
-    rows = describe(cfg)
+    rows = describe(cfg, full=full)
+    if full:
+        return "\n".join(f"{k}: {yaml.safe_dump(v, default_flow_style=True).strip()}"
+                         .removesuffix("\n...").removesuffix(" ...")
+                         + "".join(f"\n    # {line}" for line in textwrap.wrap(d, 92))
+                         for k, v, d in rows)
     shown = [(k, yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("\n...")
               .removesuffix(" ..."), d) for k, v, d in rows]
     width = max(len(f"{k}: {v}") for k, v, _ in shown)

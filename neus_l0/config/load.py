@@ -150,6 +150,11 @@ def to_dict(cfg: Any) -> dict:
     return dataclasses.asdict(cfg)
 
 
+def conf_names() -> list[str]:
+    """The built-in configs' names (``confs/*.yaml``), sorted."""
+    return sorted(p.stem for p in CONFS_DIR.glob("*.yaml"))
+
+
 def resolve_conf_path(conf: str | Path) -> Path:
     """Find a config: an existing path, else a built-in one in `CONFS_DIR`.
 

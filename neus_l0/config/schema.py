@@ -396,6 +396,11 @@ class TrainConfig:
     """Iterations between validation renders (0: never)."""
     val_downscale: int = 4
     """Downscale factor of the validation renders."""
+    holdout: int = 0
+    """Keep every K-th view (views 0, K, 2K, ...: `neus_l0.data.split.split_views`) out of
+    training (0: train on every view). The run records which views in ``run.json``
+    (``views``); validation then renders the held-out views, and `neus-l0 render --views
+    test` renders exactly those."""
     save_every: int = 10000
     """Iterations between checkpoints (a final one is always written)."""
     keep_checkpoints: int = 3

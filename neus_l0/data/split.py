@@ -39,6 +39,24 @@ def split_views(n_views: int, every: int) -> tuple[list[int], list[int]]:
     return train, heldout
 
 
+def holdout_split(scene: Scene, every: int) -> tuple[Scene, Scene | None, dict]:
+    """The views a run trains on and those it holds out (`split_views`).
+
+    Args:
+        scene: the full scene; every: hold out every `every`-th view (0: none).
+
+    Returns:
+        (training scene, held-out scene or None, record): the record, as ``run.json`` keeps
+        it, is ``{"holdout": every, "n_views": N, "train": [...], "heldout": [...]}`` with
+        indices into the full scene.
+    """
+    train, held = split_views(scene.n_views, every)
+    record = {"holdout": int(every), "n_views": scene.n_views, "train": train, "heldout": held}
+    if not held:
+        return scene, None, record
+    return subset_scene(scene, train), subset_scene(scene, held), record
+
+
 def subset_scene(scene: Scene, views: Sequence[int]) -> Scene:
     """The scene with only `views` (in the given order); shares nothing mutable with `scene`.
 

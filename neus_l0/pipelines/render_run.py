@@ -8,7 +8,8 @@ render a different scene's cameras. It lives in ``render/`` and reads ``run/`` (
 only config, fields and the root modules, so no cycle); nothing here imports training.
 
 Layout of the output folder ``DIR``: ``color/0000.png``, ``normal/0000.png``,
-``depth/0000.png`` (one per frame), ``color.mp4``, ``normal.mp4``, ``depth.mp4`` and, for
+``depth/0000.png`` (one per frame), ``color.mp4``, ``normal.mp4``, ``depth.mp4`` (H.264,
+`neus_l0.render.video`) and, for
 views with ground truth, ``metrics.json``.
 """
 
@@ -38,6 +39,7 @@ from neus_l0.render.cameras import (
     orbit_from_training,
     resize_intrinsics,
 )
+from neus_l0.render.video import Mp4Writer, check_video
 from neus_l0.render.views import (
     ViewRender,
     depth_picture,
@@ -223,6 +225,41 @@ def select_views(n_views: int, options: RenderOptions) -> list[int]:
     return train
 
 
+def run_views(run_dir: Path) -> dict | None:
+    """The views record of ``RUN/run.json`` (``{"holdout", "n_views", "train", "heldout"}``,
+    `neus_l0.data.split.holdout_split`); None without run.json. A run.json from before the
+    record is a run trained on every view: ``{"holdout": 0, "heldout": []}``."""
+    path = run_dir / "run.json"
+    if not path.is_file():
+        return None
+    meta = json.loads(path.read_text(encoding="utf-8"))
+    return meta.get("views") or {"holdout": 0, "heldout": []}
+
+
+def resolve_held_out(options: RenderOptions, record: dict | None, run_dir: Path,
+                     n_views: int) -> tuple[RenderOptions, list[int]]:
+    """The options with the run's own held-out views, and the rendered views it trained on.
+
+    Without ``--test-views`` / ``--holdout`` the held-out views are the run's
+    (``train.holdout``); with them, the views asked for, and those of them that the run
+    trained on are returned, so that their metrics are not called held-out.
+
+    Raises:
+        NeusL0Error: ``--views test`` on a run trained on every view, without those flags.
+    """
+    held = list((record or {}).get("heldout") or [])
+    if options.test_views is None and not options.holdout:
+        if options.views == "test" and not held:
+            raise NeusL0Error(f"{run_dir}: trained on every view, so it has no held-out views "
+                              "for --views test (train with --holdout K, or render --views "
+                              "train)")
+        return (dataclasses.replace(options, test_views=tuple(held)) if held else options), []
+    if options.views != "test":
+        return options, []
+    trained = set(range(n_views)) - set(held) if record is not None else set()
+    return options, sorted(trained & set(select_views(n_views, options)))
+
+
 def camera_path(scene: Scene, options: RenderOptions) -> CameraPath:
     """The cameras `options` asks for, with intrinsics scaled to the output size.
 
@@ -285,62 +322,6 @@ def check_out(out: Path) -> Path:
     return out
 
 
-class _Video:
-    """An MP4 (fourcc ``mp4v``) written to a temporary path, checked when finished.
-
-    Odd sizes are padded by one edge pixel (the codec needs even sides).
-    """
-
-    def __init__(self, path: Path, size: tuple[int, int], fps: float) -> None:
-        H, W = size
-        self.path, self.size = path, (H + H % 2, W + W % 2)
-        self.writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps,
-                                      (self.size[1], self.size[0]))
-        if not self.writer.isOpened():
-            raise NeusL0Error(f"{path}: OpenCV cannot write an mp4v video here (use "
-                              "--no-video)")
-        self.count = 0
-
-    def write(self, rgb: np.ndarray) -> None:
-        """Append an (H, W, 3) uint8 RGB frame."""
-        H, W = rgb.shape[:2]
-        bgr = cv2.copyMakeBorder(np.ascontiguousarray(rgb[..., ::-1]), 0, self.size[0] - H, 0,
-                                 self.size[1] - W, cv2.BORDER_REPLICATE)
-        self.writer.write(bgr)
-        self.count += 1
-
-    def finish(self, name: Path) -> None:
-        """Close the file and check it reads back with all its frames (`check_video`)."""
-        self.writer.release()
-        check_video(self.path, self.count, self.size, name)
-
-
-def check_video(path: Path, n_frames: int, size: tuple[int, int], name: Path | None = None
-                ) -> None:
-    """Open an MP4 with ``cv2.VideoCapture`` and count its (H, W) = `size` frames.
-
-    Raises:
-        NeusL0Error: it does not open, or has another frame count or size.
-    """
-    name = name or path
-    cap = cv2.VideoCapture(str(path))
-    try:
-        if not cap.isOpened():
-            raise NeusL0Error(f"{name}: the written video does not open with OpenCV (use "
-                              "--no-video and encode the PNGs with ffmpeg)")
-        n, shapes = 0, set()
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            n, shapes = n + 1, shapes | {frame.shape[:2]}
-    finally:
-        cap.release()
-    if n != n_frames or shapes - {tuple(size)}:
-        raise NeusL0Error(f"{name}: the written video reads back as {n} frames of "
-                          f"{sorted(shapes)}, not {n_frames} of {tuple(size)} (use --no-video)")
-
-
 def _pictures(view: ViewRender, near_far: tuple[float, float]) -> dict[str, np.ndarray]:
     """The (H, W, 3) uint8 RGB picture of each channel."""
     return {"color": to_uint8(view.color), "normal": normal_picture(view.normal),
@@ -391,8 +372,8 @@ def _render_frames(model, cfg, path: CameraPath, scene: Scene, out: Path,
         videos = {}
         for ch in CHANNELS if options.video else ():
             tmp = stack.enter_context(atomic_path(out / f"{ch}.mp4"))
-            videos[ch] = _Video(tmp, path.size, options.fps)
-            stack.callback(videos[ch].writer.release)  # before the rename / removal
+            videos[ch] = Mp4Writer(tmp, path.size, options.fps)
+            stack.callback(videos[ch].close)  # before the rename / removal
         for i in tqdm(range(n), desc="render", unit="frame", disable=not progress):
             K = torch.as_tensor(path.K[i], dtype=torch.float32, device=device)
             c2w = torch.as_tensor(path.c2w[i], dtype=torch.float32, device=device)
@@ -407,7 +388,8 @@ def _render_frames(model, cfg, path: CameraPath, scene: Scene, out: Path,
                 per_view.append({"frame": i, "view": v, "image": scene.image_names[v],
                                  **view_metrics(view.color, gt, mask)})
         for ch, video in videos.items():
-            video.finish(out / f"{ch}.mp4")
+            video.close()
+            check_video(video.path, video.count, video.size, out / f"{ch}.mp4")
     for ch in CHANNELS:
         _remove_stale_frames(out / ch, n)
     return {ch: out / f"{ch}.mp4" for ch in videos}, per_view
@@ -423,7 +405,10 @@ def render_run(run_dir: str | Path, out: str | Path | None = None,
     rays narrowed by the run's visual hull (``RUN/hull.pt``) when it has one. Views with
     ground truth (train / test) get PSNR, SSIM (and the PSNR inside the mask with masks)
     against the scene's images, area-resized to the output size; they are written to
-    ``OUT/metrics.json``.
+    ``OUT/metrics.json``. ``views="test"`` renders the run's held-out views
+    (``train.holdout``, recorded in ``run.json``) and refuses a run trained on every view;
+    views given by `options` that the run trained on are labelled ``"views": "train"``
+    (``"held_out": false``, ``"trained_on"``), never held-out.
 
     Args:
         run_dir: the run folder (``checkpoints/``, ``run.json``, optional ``hull.pt``).
@@ -451,6 +436,7 @@ def render_run(run_dir: str | Path, out: str | Path | None = None,
     out = Path(out)
     model, cfg, info = load_trained_model(run_dir, device, options.checkpoint)
     scene = run_scene(run_dir, options, cfg.data.downscale)
+    options, trained = resolve_held_out(options, run_views(run_dir), run_dir, scene.n_views)
     path = camera_path(scene, options)
     check_out(out)
     hull = load_run_hull(run_dir, device)
@@ -460,7 +446,9 @@ def render_run(run_dir: str | Path, out: str | Path | None = None,
     seconds = time.monotonic() - t0
     metrics = None
     if path.views is not None:
-        metrics = {"views": options.views, "frames": len(per_view), "width": path.size[1],
+        label = "train" if trained else options.views
+        metrics = {"views": label, "held_out": label == "test", "trained_on": trained,
+                   "frames": len(per_view), "width": path.size[1],
                    "height": path.size[0], "checkpoint": str(info["path"]),
                    "iteration": int(info["iteration"]), **mean_metrics(per_view),
                    "per_view": per_view}

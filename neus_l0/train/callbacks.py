@@ -23,6 +23,8 @@ import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import numpy as np
+
 from neus_l0.run.checkpoints import checkpoint_path
 from neus_l0.run.metrics import append_line, snapshot_lines
 from neus_l0.train.state import RunState
@@ -104,26 +106,55 @@ class ProgressBar(TrainingCallback):
 
 
 class Validation(TrainingCallback):
-    """Every ``train.val_every`` steps: ground truth | colour | normals of one view, as a
-    PNG in ``RUN/validation/`` (the views taken in turn); `sinks` also get the image."""
+    """Every ``train.val_every`` steps: ground truth | colour | normals of one view, as a PNG
+    ``RUN/validation/NNNNNNN_vVVV.png`` (VVV: the view's index in the full scene), and its
+    PSNR as a line ``{"iter", "val_psnr", "val_view", "val_heldout"}`` of ``metrics.jsonl``.
 
-    def __init__(self, sinks: Sequence[Callable[[int, str, object], None]] = ()) -> None:
+    The views, taken in turn: the held-out ones (``train.holdout``), else up to
+    `MAX_VIEWS` training views spread over the scene, so that each view's images form one
+    series (one TensorBoard tag, ``validation/vVVV``, with a step slider). `sinks` get
+    ``(step, tag, image)``, `scalar_sinks` ``(step, name, value)``.
+    """
+
+    MAX_VIEWS = 4
+
+    def __init__(self, sinks: Sequence[Callable[[int, str, object], None]] = (),
+                 scalar_sinks: Sequence[Callable[[int, str, float], None]] = ()) -> None:
         self.sinks = list(sinks)
+        self.scalar_sinks = list(scalar_sinks)
+
+    @classmethod
+    def views(cls, run: RunState) -> list[tuple[object, int, int, bool]]:
+        """(scene, index in it, index in the full scene, held out) of each validation view."""
+        if run.heldout is not None:
+            return [(run.heldout, i, v, True) for i, v in enumerate(run.views["heldout"])]
+        n = run.scene.n_views
+        picks = sorted({round(x) for x in np.linspace(0, n - 1, min(cls.MAX_VIEWS, n))})
+        full = run.views.get("train") or list(range(n))
+        return [(run.scene, i, full[i], False) for i in picks]
 
     def after_step(self, run: RunState) -> None:
         every = run.cfg.train.val_every
         if not step_check(run.iteration, every):
             return
+        from neus_l0.render.views import psnr
         from neus_l0.train.validation import validation_image, write_png
 
-        view = (run.iteration // every) % run.scene.n_views
+        views = self.views(run)
+        scene, i, view, held = views[(run.iteration // every) % len(views)]
         with run.evaluating():
-            img = validation_image(run.model, run.scene, run.cfg, view, run.iteration,
+            img = validation_image(run.model, scene, run.cfg, i, run.iteration,
                                    bounds=run.bounds, sampler=run.setup.sampler)
         write_png(run.run_dir / "validation" / f"{run.iteration:07d}_v{view:03d}.png", img,
                   within=run.run_dir)
+        w = img.shape[1] // 3
+        value = psnr(img[:, w:2 * w] / 255.0, img[:, :w] / 255.0)
+        append_line(run.run_dir, {"iter": run.iteration, "val_psnr": value, "val_view": view,
+                                  "val_heldout": held})
         for sink in self.sinks:
             sink(run.iteration, f"validation/v{view:03d}", img)
+        for sink in self.scalar_sinks:
+            sink(run.iteration, "psnr_heldout" if held else "psnr", value)
 
 
 class Checkpoints(TrainingCallback):
@@ -206,6 +237,11 @@ class TensorBoard(TrainingCallback):
         rays = metrics.get("rays") or run.rays
         values["samples_per_ray"] = metrics["samples"] / max(rays, 1)
         self.logger.scalars(run.iteration, values)
+
+    def scalar(self, step: int, name: str, value: float) -> None:
+        """A `Validation` scalar sink: ``validation/NAME``."""
+        if self.logger is not None:
+            self.logger.scalars(step, {name: value}, prefix="validation/")
 
     def image(self, step: int, tag: str, rgb) -> None:
         """A `Validation` sink."""

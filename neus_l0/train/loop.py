@@ -33,6 +33,7 @@ from neus_l0.bounds.static import cameras_inside_warning, static_bounds
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.config.schema import Config
 from neus_l0.data.scene import Scene
+from neus_l0.data.split import holdout_split
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields.model import make_model
 from neus_l0.run.checkpoints import (
@@ -263,7 +264,7 @@ def _write_run_files(run: RunState) -> None:
     atomic_write_json(run_dir / "run.json", {
         "scene": str(scene.root), "scale_mat": np.asarray(scene.scale_mat).tolist(),
         "n_views": scene.n_views, "height": scene.height, "width": scene.width,
-        "scene_fingerprint": run.fingerprint,
+        "scene_fingerprint": run.fingerprint, "views": run.views,
     }, within=run_dir)
     dropped = truncate_metrics(run_dir, run.iteration)
     if dropped:
@@ -329,8 +330,9 @@ def default_callbacks(cfg: Config, progress: bool, hooks: Sequence[Hook],
     """The loop's own bookkeeping, in the order it runs at each point."""
     board = [TensorBoard()] if cfg.train.tensorboard else []
     sinks = [board[0].image] if board else []
+    scalars = [board[0].scalar] if board else []
     return [HookCallback(hooks), MetricsFile(), *board, ProgressBar(progress),
-            Validation(sinks), Checkpoints(), Snapshots(snapshots)]
+            Validation(sinks, scalars), Checkpoints(), Snapshots(snapshots)]
 
 
 def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.device = "cpu",
@@ -341,7 +343,9 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     """Train NeuS on `scene` and write the run folder.
 
     Args:
-        scene: the loaded scene (moved to `device`).
+        scene: the loaded scene (moved to `device`); with ``train.holdout = K`` every K-th
+            view is kept out of training (`neus_l0.data.split.holdout_split`), recorded in
+            ``run.json`` and rendered by the validation.
         cfg: the run config. When resuming, pass the run's own config (``RUN/config.yaml``,
             as `neus-l0 train --resume` does) for a result identical to an uninterrupted run;
             changed settings such as `train.iters` or `train.lr` apply from the resumed
@@ -373,8 +377,10 @@ def train(scene: Scene, cfg: Config, run_dir: str | Path, device: str | torch.de
     if Path(run_dir).exists() and not Path(run_dir).is_dir():
         raise NeusL0Error(f"{run_dir}: is a file, not a run folder (choose another --out)")
     started = time.monotonic()
+    part, held, views = holdout_split(scene, cfg.train.holdout)
     with RunLock(run_dir), StopOnSignal() as stop:
-        run = build_run_state(scene, cfg, Path(run_dir), torch.device(device), resume)
+        run = build_run_state(part, cfg, Path(run_dir), torch.device(device), resume)
+        run.views, run.heldout = views, None if held is None else held.to(run.device)
         return _run_loop(run, _with_budget(run, own, started, resume) + list(callbacks),
                          stop_at, stop)
 

@@ -72,3 +72,14 @@ def process_seconds() -> float:
 
 
 _IMPORTED = __import__("time").monotonic()
+
+
+def run_files(run_dir) -> list[str]:
+    """What the run folder holds, as the end-of-training line lists it."""
+    names = ["config.yaml", "metrics.jsonl"]
+    if any((run_dir / "validation").glob("*.png")):
+        names.append("validation/")
+    names.append("checkpoints/")
+    if any(run_dir.glob("events.out.tfevents.*")):
+        names.append(f"TensorBoard events: tensorboard --logdir {run_dir}")
+    return names

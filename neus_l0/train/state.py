@@ -73,6 +73,8 @@ class RunState:
     diverged: bool = False
     fingerprint: str = ""  # the scene's (`neus_l0.train.preflight.scene_fingerprint`)
     stop_requested: bool = False  # a callback asks the loop to stop (a budget's deadline)
+    heldout: Scene | None = None  # the views kept out of training (train.holdout)
+    views: dict = dataclasses.field(default_factory=dict)  # `holdout_split`'s record
 
     @property
     def end(self) -> int:

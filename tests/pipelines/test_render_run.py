@@ -18,7 +18,7 @@ from neus_l0.data.rays import pixel_rays
 from neus_l0.data.split import split_views
 from neus_l0.errors import NeusL0Error
 from neus_l0.formats.neus import load_scene
-from neus_l0.pipelines.render_run import RenderOptions, check_video, render_run, select_views
+from neus_l0.pipelines.render_run import RenderOptions, render_run, select_views
 from neus_l0.render.cameras import (
     camera_elevations,
     depth_range,
@@ -27,6 +27,7 @@ from neus_l0.render.cameras import (
     resize_intrinsics,
     up_direction,
 )
+from neus_l0.render.video import check_video
 from neus_l0.render.views import MSE_FLOOR, mean_metrics, psnr, view_metrics
 from neus_l0.train.loop import train
 
