@@ -25,9 +25,9 @@ proves that the cell's whole footprint, widened by `margin_px`, is background:
   (see below) and those excluded as suspicious. Without masks nothing is carved.
 
 After carving, the kept cells are dilated by one cell (26-neighbourhood); `VisualHull`
-holds that dilated grid. Everything in it follows from the masks and `margin_px`: the
-object is inside the hull wherever every mask covers the object's projection up to
-`margin_px` pixels (mask error plus calibration error).
+holds that dilated grid (and the undilated one as ``carved``). Everything in it follows
+from the masks and `margin_px`: the object is inside the hull wherever every mask covers
+the object's projection up to `margin_px` pixels (mask error plus calibration error).
 
 Suspicious views (`check_hull`, and the exclusion in `carve_hull`):
 
@@ -131,16 +131,19 @@ class VisualHull:
         occupancy: (R, R, R) bool, True where the object may be.
         margin_px: the mask margin it was carved with.
         report: the `HullReport` of the carving (None when loaded from an old file).
+        carved: (R, R, R) bool, the cells the carving kept before the dilation (None when
+            loaded or derived from another hull).
     """
 
     def __init__(self, occupancy: Tensor, margin_px: float = DEFAULT_MARGIN_PX,
-                 report: HullReport | None = None) -> None:
+                 report: HullReport | None = None, carved: Tensor | None = None) -> None:
         if occupancy.dim() != 3 or len(set(occupancy.shape)) != 1:
             raise NeusL0Error(f"visual hull: occupancy must be (R, R, R), got "
                               f"{tuple(occupancy.shape)}")
         self.occupancy = occupancy.bool()
         self.margin_px = float(margin_px)
         self.report = report
+        self.carved = carved
         self._integral: Tensor | None = None
 
     # --- basics -------------------------------------------------------------------------
@@ -627,7 +630,8 @@ def carve_hull(masks: Tensor, intrinsics: Tensor, c2w: Tensor,
         idx, count, carver = _carve(R, dists, intrinsics, c2w, carving, margin_px, dev)
         occ = torch.zeros(R ** 3, dtype=torch.bool, device=dev)
         occ[idx] = count == 0
-        hull = VisualHull(dilate(occ.reshape(R, R, R)), margin_px)
+        hull = VisualHull(dilate(occ.reshape(R, R, R)), margin_px,
+                          carved=occ.reshape(R, R, R))
         if rays is None:
             explained = [1.0] * V
             break

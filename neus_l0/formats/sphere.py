@@ -11,13 +11,15 @@ must stay outside it. Three ways, first that applies (`find_sphere`):
       optical axes (`neus_l0.data.cameras.axes_convergence`), radius `SEARCH_FRACTION` x
       the nearest camera's distance to it (so every camera is outside).
    b. The masks (block-averaged to at most 128 pixels, `neus_l0.formats.transforms.Views`)
-      are padded with their own edge pixels (background stays background beyond the image
-      frame, an object cut by the frame stays cut open) so that views see the whole search
-      sphere, and `neus_l0.bounds.hull.carve_hull` carves it at `RESOLUTION`^3 in the
-      search sphere's normalised frame.
-   c. The tight sphere: the centre of the kept cells' bounding box, and the farthest kept
-      cell corner from it times `MARGIN`, after carving once more (finer cells) in a sphere
-      `REFINE_SLACK` x the first hull's.
+      are made binary (`search_foreground`: coverage >= `COVERAGE`, or any coverage where
+      no neighbour reaches it) and padded with their own edge pixels (background stays
+      background beyond the image frame, an object cut by the frame stays cut open) so that
+      views see the whole search sphere, and `neus_l0.bounds.hull.carve_hull` carves it at
+      `RESOLUTION`^3 in the search sphere's normalised frame, with a `MARGIN_PX` margin.
+   c. The tight sphere: carved once more at `FINE_RESOLUTION`^3 in a sphere `REFINE_SLACK`
+      x the first hull's reach; the centre of the kept (undilated) cells' bounding box, and
+      the farthest kept cell corner from it plus `MARGIN` of that. The cells hold the
+      carved hull, so the margin is only for the masks' rounding.
    d. When kept cells touch the search sphere's boundary, the object (or a mask error)
       reaches beyond it: the search is repeated once around the kept cells with the largest
       radius the cameras allow; if the hull still touches, a `SceneError` says how much of
@@ -69,12 +71,17 @@ SEARCH_FRACTION = 0.75
 RETRY_FRACTION = 0.95
 #: Cells per axis of the search hull.
 RESOLUTION = 64
-#: Mask dilation of the search hull, in search-mask pixels.
+#: Cells per axis of the last, refining carve.
+FINE_RESOLUTION = 128
+#: Mask dilation of the search hull, in search-mask pixels (covers the thresholding below).
 MARGIN_PX = 1.0
+#: A search-mask pixel (a block average of the full-resolution mask) is foreground from
+#: this coverage up (and below it when no pixel around it reaches it: thin parts stay).
+COVERAGE = 0.5
 #: The refining search sphere's radius over the first hull's farthest corner.
-REFINE_SLACK = 1.15
-#: The tight sphere's radius over the hull's farthest corner.
-MARGIN = 1.1
+REFINE_SLACK = 1.1
+#: The tight sphere's radius: the kept cells' farthest corner plus this fraction of it.
+MARGIN = 0.03
 #: The padding of the search masks, at most this many times their longer side per edge.
 MAX_PAD = 1.5
 #: Every camera stays outside: radii are capped at this fraction of the nearest camera's
@@ -179,23 +186,45 @@ def _pad(masks: np.ndarray, K: np.ndarray, c2w_n: np.ndarray) -> tuple[np.ndarra
     return out, Kp
 
 
-def _carve(masks: np.ndarray, K: np.ndarray, c2w: np.ndarray, center: np.ndarray,
-           radius: float, names: list[str] | None) -> tuple[np.ndarray, float, list[str]]:
-    """Carve the hull in the sphere (center, radius).
+def search_foreground(masks: np.ndarray) -> np.ndarray:
+    """Binary search masks from block-averaged coverage (`COVERAGE`).
+
+    A pixel is foreground when its coverage reaches `COVERAGE` (the silhouette as a mask
+    rendered at this resolution would give it, within `MARGIN_PX` of the true one), or when
+    it has any coverage and no pixel of its 3 x 3 neighbourhood reaches `COVERAGE` (a part
+    thinner than half a pixel, e.g. a rod, is kept rather than lost).
+
+    Args:
+        masks: (V, h, w) float coverage in [0, 1].
 
     Returns:
-        kept: (N, 3) kept cell centres in the sphere's normalised frame;
+        (V, h, w) float32 in {0, 1}.
+    """
+    full = masks >= COVERAGE
+    near_full = np.stack([cv2.dilate(f.astype(np.uint8), np.ones((3, 3), np.uint8))
+                          for f in full]).astype(bool) if len(masks) else full
+    return (full | ((masks > 0) & ~near_full)).astype(np.float32)
+
+
+def _carve(masks: np.ndarray, K: np.ndarray, c2w: np.ndarray, center: np.ndarray,
+           radius: float, names: list[str] | None,
+           resolution: int = RESOLUTION) -> tuple[np.ndarray, float, list[str]]:
+    """Carve the hull in the sphere (center, radius) at `resolution`^3 cells.
+
+    Returns:
+        kept: (N, 3) centres of the cells the carving kept (not dilated), in the sphere's
+            normalised frame;
         shell: the fraction of the boundary shell's cells that are kept;
         warnings: the hull's warning lines.
     """
     c2w_n = _normalised(c2w, center, radius)
     pm, pK = _pad(masks, K, c2w_n)
     hull = carve_hull(torch.from_numpy(pm).float(), torch.from_numpy(pK).float(),
-                      torch.from_numpy(c2w_n).float(), resolution=RESOLUTION,
+                      torch.from_numpy(c2w_n).float(), resolution=resolution,
                       margin_px=MARGIN_PX, has_masks=True, names=names)
-    occ = hull.occupancy.cpu().numpy()
-    h = 2.0 / RESOLUTION
-    ax = -1.0 + h * (np.arange(RESOLUTION) + 0.5)
+    occ = hull.carved.cpu().numpy()
+    h = 2.0 / resolution
+    ax = -1.0 + h * (np.arange(resolution) + 0.5)
     grid = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1)  # (R, R, R, 3)
     r = np.linalg.norm(grid, axis=-1)
     shell_cells = (r > 1.0 - 2.0 * h) & (r <= 1.0 + h)
@@ -203,9 +232,10 @@ def _carve(masks: np.ndarray, K: np.ndarray, c2w: np.ndarray, center: np.ndarray
     return grid[occ], shell, list(hull.report.warnings)
 
 
-def _tight(kept: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centre of the kept cells' box and the farthest cell corner's distance (normalised)."""
-    h = 2.0 / RESOLUTION
+def _tight(kept: np.ndarray, resolution: int) -> tuple[np.ndarray, float]:
+    """Centre of the kept cells' box and the farthest kept cell corner's distance from it
+    (normalised): the smallest ball about that centre holding every kept cell."""
+    h = 2.0 / resolution
     lo, hi = kept.min(0) - 0.5 * h, kept.max(0) + 0.5 * h
     mid = 0.5 * (lo + hi)
     reach = float(np.linalg.norm(kept - mid, axis=-1).max()) + 0.5 * math.sqrt(3.0) * h
@@ -218,7 +248,7 @@ def hull_sphere(masks: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray,
     """The object sphere from the masks' visual hull (step 2 of the module docstring).
 
     Args:
-        masks: (V, h, w) float32 coverage in [0, 1] (any coverage counts as foreground).
+        masks: (V, h, w) float32 coverage in [0, 1] (`search_foreground`).
         intrinsics: (V, 3, 3) K of those masks; c2w: (V, 4, 4) OpenCV camera-to-world in
             world units.
         names: view names for the hull's warnings.
@@ -230,55 +260,73 @@ def hull_sphere(masks: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray,
             search sphere after the second search.
     """
     t0 = time.perf_counter()
+    fg = search_foreground(masks)
+    centres = c2w[:, :3, 3]
+    center, radius, kept, warnings, tries = _search(fg, intrinsics, c2w, names, where)
+    # refine: carve again, with finer cells, in a sphere just around the first hull
+    res = RESOLUTION
+    mid, reach = _tight(kept, res)
+    fine_center, fine_radius = center + radius * mid, REFINE_SLACK * radius * reach
+    fine, fine_shell, fine_warnings = _carve(fg, intrinsics, c2w, fine_center, fine_radius,
+                                             names, FINE_RESOLUTION)
+    if len(fine) and fine_shell == 0.0:
+        center, radius, kept, warnings = fine_center, fine_radius, fine, fine_warnings
+        res = FINE_RESOLUTION
+    if log is not None:
+        for w in warnings:
+            log(f"visual hull: {w}")
+    mid, reach = _tight(kept, res)
+    center_w = center + radius * mid
+    radius_w = (1.0 + MARGIN) * radius * reach
+    nearest = float(np.linalg.norm(centres - center_w, axis=-1).min())
+    detail = (f"{len(masks)} masks, {res}^3 cells in a sphere of radius {radius:.4g}"
+              f"{', second search' if tries > 1 else ''}; the kept cells' farthest corner "
+              f"+{MARGIN:.0%}")
+    if radius_w > MAX_CAMERA_FRACTION * nearest:
+        radius_w = MAX_CAMERA_FRACTION * nearest
+        detail += "; capped to keep every camera outside"
+    return SphereFit(center=center_w, radius=radius_w, method="visual hull", detail=detail,
+                     points=center + radius * kept, seconds=time.perf_counter() - t0)
+
+
+def _search(fg: np.ndarray, intrinsics: np.ndarray, c2w: np.ndarray,
+            names: list[str] | None, where: str | Path):
+    """Steps 2a, 2b and 2d of the module docstring: the first hull, in a search sphere that
+    holds it.
+
+    Returns:
+        center (3,), radius of the search sphere; kept (N, 3) cell centres in its frame;
+        the hull's warnings; how many searches it took.
+
+    Raises:
+        SceneError: as `hull_sphere`.
+    """
     centres, axes = c2w[:, :3, 3], c2w[:, :3, 2]
     try:
         center, radius = search_sphere(centres, axes)
     except ValueError:
         raise SceneError(f"{where}: the cameras' optical axes are (nearly) parallel: no "
                          f"object to centre on; give the sphere in {SPHERE_FILE}") from None
-    tries = 0
-    while True:
-        tries += 1
-        kept, shell, warnings = _carve(masks, intrinsics, c2w, center, radius, names)
+    for tries in (1, 2):
+        kept, shell, warnings = _carve(fg, intrinsics, c2w, center, radius, names)
         if len(kept) == 0:
             raise SceneError(f"{where}: the masks' visual hull is empty: masks and cameras "
                              f"disagree (wrong camera convention or masks of other views?)")
         if shell == 0.0:
-            break
-        mid, _ = _tight(kept)
+            return center, radius, kept, warnings, tries
+        mid, _ = _tight(kept, RESOLUTION)
         new_center = center + radius * mid
         nearest = float(np.linalg.norm(centres - new_center, axis=-1).min())
         if tries == 2 or RETRY_FRACTION * nearest <= radius * 1.05:
-            raise SceneError(
-                f"{where}: the masks' visual hull reaches the search sphere (centre "
-                f"({center[0]:.4g}, {center[1]:.4g}, {center[2]:.4g}), radius {radius:.4g}, "
-                f"the largest the cameras allow): {shell:.1%} of its boundary cells are kept, "
-                f"so the object is cut there; check that every mask covers the object only "
-                f"and that the object is whole in most views, or give the sphere in "
-                f"{SPHERE_FILE} ({{\"center\": [x, y, z], \"radius\": r}}, world units)")
+            break
         center, radius = new_center, RETRY_FRACTION * nearest
-    # refine: carve again in a sphere just around the first hull (finer cells)
-    mid, reach = _tight(kept)
-    fine_center, fine_radius = center + radius * mid, REFINE_SLACK * radius * reach
-    fine, fine_shell, fine_warnings = _carve(masks, intrinsics, c2w, fine_center, fine_radius,
-                                             names)
-    if len(fine) and fine_shell == 0.0:
-        center, radius, kept, warnings = fine_center, fine_radius, fine, fine_warnings
-    if log is not None:
-        for w in warnings:
-            log(f"visual hull: {w}")
-    mid, reach = _tight(kept)
-    center_w = center + radius * mid
-    radius_w = MARGIN * radius * reach
-    nearest = float(np.linalg.norm(centres - center_w, axis=-1).min())
-    refined = "refined in" if radius == fine_radius else "in"
-    detail = (f"{len(masks)} masks, {RESOLUTION}^3 cells {refined} a sphere of radius "
-              f"{radius:.4g}{', second search' if tries > 1 else ''}; x{MARGIN:g} margin")
-    if radius_w > MAX_CAMERA_FRACTION * nearest:
-        radius_w = MAX_CAMERA_FRACTION * nearest
-        detail += "; capped to keep every camera outside"
-    return SphereFit(center=center_w, radius=radius_w, method="visual hull", detail=detail,
-                     points=center + radius * kept, seconds=time.perf_counter() - t0)
+    raise SceneError(
+        f"{where}: the masks' visual hull reaches the search sphere (centre "
+        f"({center[0]:.4g}, {center[1]:.4g}, {center[2]:.4g}), radius {radius:.4g}, "
+        f"the largest the cameras allow): {shell:.1%} of its boundary cells are kept, "
+        f"so the object is cut there; check that every mask covers the object only "
+        f"and that the object is whole in most views, or give the sphere in "
+        f"{SPHERE_FILE} ({{\"center\": [x, y, z], \"radius\": r}}, world units)")
 
 
 def camera_sphere(c2w: np.ndarray, points: np.ndarray | None = None,
