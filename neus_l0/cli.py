@@ -83,6 +83,9 @@ def _sigterm_raises():
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `neus-l0` console script."""
     use_persistent_cache()  # before torch imports torch._dynamo, which fixes inductor's cache
+    for stream in (sys.stdout, sys.stderr):  # a path that is not UTF-8 is shown, not fatal
+        with contextlib.suppress(AttributeError, ValueError):
+            stream.reconfigure(errors="backslashreplace")
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "_run", None) is None:

@@ -43,21 +43,27 @@ def synchronize(device: torch.device) -> None:
 
 
 def free_cpu_threads(requested: int | None = None) -> int:
-    """Torch CPU threads for a command: `requested` when given (>= 1), else the cores this
-    process may use less the machine's recent load (rounded), at least 1.
+    """Torch CPU threads for a command: `requested` when given (>= 1; at most the cores this
+    process may use, with one line on stderr when more were asked), else those cores less
+    the machine's recent load (rounded), at least 1.
 
     Torch's default of one thread per core is wrong on a shared machine: while another job
     holds a core, the threads wait on each other and training slows down several-fold
     (docs/BENCHMARKS.md, "How many CPU threads should training use?").
     """
     import os
+    import sys
 
-    if requested:
-        return max(1, int(requested))
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux
         cores = os.cpu_count() or 1
+    if requested and int(requested) > cores:
+        print(f"neus-l0: --threads {requested}: more than the {cores} cores this process may "
+              f"use; using {cores}", file=sys.stderr, flush=True)
+        return cores
+    if requested:
+        return max(1, int(requested))
     try:
         load = os.getloadavg()[0]
     except OSError:  # pragma: no cover

@@ -204,7 +204,11 @@ class VisualHull:
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - a damaged file is the user's problem
-            raise NeusL0Error(f"{path}: unreadable visual hull ({exc})") from None
+            torch_talk = ("Weights only load failed", "Please file an issue", "Check the doc")
+            why = next((ln.strip() for ln in str(exc).splitlines()
+                        if ln.strip() and not ln.strip().startswith(torch_talk)),
+                       type(exc).__name__)[:160]
+            raise NeusL0Error(f"{path}: unreadable visual hull ({why})") from None
         return cls.from_state_dict(state, device)
 
     # --- queries ------------------------------------------------------------------------

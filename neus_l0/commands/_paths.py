@@ -121,6 +121,18 @@ def check_not_input(out: str | Path, flag: str, inputs: Iterable[str | Path | No
     return out
 
 
+def check_not_in_input_folder(out: str | Path, flag: str, folders: Iterable) -> Path:
+    """Refuse an output file that exists inside an input folder (``eval MESH --scene S
+    --json S/scene.json``). Raises `NeusL0Error` naming both."""
+    out = Path(out)
+    real = Path(os.path.realpath(out))
+    for folder in (f for f in folders if f is not None and Path(f).is_dir()):
+        if out.exists() and Path(os.path.realpath(folder)) in real.parents:
+            raise NeusL0Error(f"{flag} {out}: is a file of the input {folder}; writing it "
+                              "would destroy part of the input (give another path)")
+    return out
+
+
 def check_output_file(path: str | Path, flag: str) -> Path:
     """Refuse a file destination that is an existing folder or lies under a file.
 

@@ -63,13 +63,19 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 def run(args: argparse.Namespace) -> int:
     from neus_l0.atomic import atomic_write_text
-    from neus_l0.commands._paths import check_not_input, check_output_dir, check_output_file
+    from neus_l0.commands._paths import (
+        check_not_in_input_folder,
+        check_not_input,
+        check_output_dir,
+        check_output_file,
+    )
     from neus_l0.device import available_memory
     from neus_l0.evaluation.score import ScoreSpec, score_mesh
 
     out = args.json if args.json is not None else args.mesh.with_name(args.mesh.name + ".eval.json")
     inputs = [args.mesh, args.scene, args.dtu, args.cull]
     check_not_input(out, "--json", inputs)
+    check_not_in_input_folder(out, "--json", [args.scene, args.dtu, args.cull])
     check_output_file(out, "--json")
     if args.error_maps is not None:
         check_output_dir(args.error_maps, "--error-maps", (), ("accuracy.ply", "completeness.ply"),

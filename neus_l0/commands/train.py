@@ -83,6 +83,9 @@ def run(args: argparse.Namespace) -> int:
         raise NeusL0Error("--change-config allows a resumed run to change its config; "
                           "without --resume it does nothing: add --resume, or drop it")
     check_not_input(args.out, "--out", [args.data])
+    if not str(args.out).isprintable() or "\udc80" <= max(str(args.out)) <= "\udcff":
+        raise NeusL0Error(f"--out {args.out!r}: a name with bytes that are not UTF-8 text or "
+                          "with control characters; TensorBoard cannot write there (rename it)")
     run_dir = check_output_dir(args.out, "--out", RUN_RECORDS, RUN_LEFTOVERS, "a run folder")
     if args.holdout is not None:
         args.overrides = [*args.overrides, f"train.holdout={args.holdout}"]

@@ -109,7 +109,14 @@ def read_image(path: Path, shape: tuple[int, int] | None = None
     cut = truncated(path)  # before decoding: libpng / libjpeg would print to stderr
     if cut:
         raise SceneError(f"{path}: {cut} (a partial copy or download?)")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    huge = oversized(path)
+    if huge:
+        raise SceneError(f"{path}: {huge}")
+    try:
+        img = imread_bytes(path, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        why = str(exc).strip().splitlines()[-1][:120]
+        raise SceneError(f"{path}: unreadable image (OpenCV: {why})") from None
     if img is None:
         raise SceneError(f"{path}: unreadable image")
     if shape is not None and img.shape[:2] != shape:
@@ -155,6 +162,38 @@ def truncated(path: Path) -> str | None:
             and b"\xff\xd9" not in tail.rstrip(b"\x00 \r\n")[-2:]):
         return "truncated JPEG (no end-of-image marker)"
     return None
+
+
+def imread_bytes(path: Path, flags: int) -> np.ndarray | None:
+    """`cv2.imread` of the file's bytes: OpenCV's own open crashes on a path that is not
+    valid UTF-8 (a name with a 0xff byte); None when the file does not read or decode."""
+    try:
+        data = np.fromfile(path, np.uint8)
+    except (OSError, ValueError):
+        return None
+    return cv2.imdecode(data, flags) if data.size else None
+
+
+#: The most pixels a scene image may declare (a 16k x 16k photo; beyond it decoding would
+#: take gigabytes before any check of the scene could run).
+MAX_IMAGE_PIXELS = 16384 * 16384
+
+
+def oversized(path: Path) -> str | None:
+    """Why a PNG's declared size is refused (more than `MAX_IMAGE_PIXELS`: a decompression
+    bomb, or not a photo), read from its header before decoding; None otherwise."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if not head.startswith(PNG_SIGNATURE) or len(head) < 24 or head[12:16] != b"IHDR":
+        return None
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if width * height <= MAX_IMAGE_PIXELS:
+        return None
+    return (f"declares {width}x{height} pixels, more than a scene image may have "
+            f"({MAX_IMAGE_PIXELS:,}); a decompression bomb or not a photo")
 
 
 #: How far two views' scale_mat may differ (relative to the largest entry) and still be one.

@@ -259,13 +259,17 @@ def restore_training(path: Path, state: dict, model: torch.nn.Module,
     Raises:
         NeusL0Error: the checkpoint's networks do not fit the config's.
     """
+    load_weights(path, model, state["model"], "resume with the run's config.yaml")
     try:
-        model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
     except (RuntimeError, ValueError, KeyError) as exc:
         raise NeusL0Error(f"{path}: does not fit the config's networks (resume with the "
-                          f"run's config.yaml): {str(exc).splitlines()[0]}") from None
-    restore_rng(generator, state["rng"])
+                          f"run's config.yaml): {_fit_line(exc)}") from None
+    try:
+        restore_rng(generator, state["rng"])
+    except (RuntimeError, ValueError, TypeError) as exc:
+        raise NeusL0Error(f"{path}: its random generator states do not load "
+                          f"({_fit_line(exc)}); resume from an earlier checkpoint") from None
     if occupancy is not None and "occupancy" in state:
         occupancy.load_state_dict(state["occupancy"])
     elif occupancy is not None:
@@ -273,6 +277,36 @@ def restore_training(path: Path, state: dict, model: torch.nn.Module,
     if "scaler" in state:
         scaler.load_state_dict(state["scaler"])
     return int(state["iteration"]), int(state.get("batch_size", 0))
+
+
+def _fit_line(exc: BaseException) -> str:
+    """The informative line of a torch loading error (its first line is often only a
+    header such as "Error(s) in loading state_dict for NeuSModel:")."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    if len(lines) > 1 and lines[0].endswith(":"):
+        lines = lines[1:]
+    text = lines[0] if lines else type(exc).__name__
+    return text if len(text) <= 160 else text[:157] + "..."
+
+
+def load_weights(path: Path, model: torch.nn.Module, weights: dict, hint: str) -> None:
+    """`model.load_state_dict(weights)`, refusing a tensor of another shape or kind (an
+    integer tensor where the model holds floats) in one line naming `path`.
+
+    Raises:
+        NeusL0Error: the checkpoint's networks do not fit `model` (`hint` says what to do).
+    """
+    own = model.state_dict()
+    for key, value in weights.items():
+        mine = own.get(key)
+        if mine is not None and mine.is_floating_point() != value.is_floating_point():
+            raise NeusL0Error(f"{path}: does not fit the config's networks ({hint}): "
+                              f"'{key}' is {value.dtype}, the model's is {mine.dtype}")
+    try:
+        model.load_state_dict(weights)
+    except (RuntimeError, ValueError, KeyError) as exc:
+        raise NeusL0Error(f"{path}: does not fit the config's networks ({hint}): "
+                          f"{_fit_line(exc)}") from None
 
 
 def prune_checkpoints(run_dir: Path, keep: int, protected: set[Path]) -> None:
@@ -360,9 +394,12 @@ def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
         if found is None:
             raise NeusL0Error(f"{run_dir}: no checkpoints/ckpt_*.pt (train first)")
         path, state = found
-    cfg = config_from_dict(state["config"])
+    try:
+        cfg = config_from_dict(state["config"])
+    except NeusL0Error as exc:
+        raise NeusL0Error(f"{path}: its config is not valid: {exc}") from None
     model = make_model(cfg, device)
-    model.load_state_dict(state["model"])
+    load_weights(path, model, state["model"], "a damaged or foreign file")
     model.eval()
     info = {k: v for k, v in state.items() if k not in ("model", "optimizer", "rng")}
     info["path"] = path

@@ -15,6 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from neus_l0.atomic import inside
+from neus_l0.errors import OutputError
 
 #: Globs (relative to the folder) whose presence makes a folder a run of this tool.
 RUN_RECORDS = ("run.json", "checkpoints/ckpt_*.pt")
@@ -26,10 +27,14 @@ RUN_ENTRIES = ("config.yaml", "run.json", "metrics.jsonl", "resumes.jsonl", "hul
 
 
 def check_run_entries(run_dir: str | Path) -> None:
-    """Refuse a run folder one of whose entries (`RUN_ENTRIES`) leads out of it.
+    """Refuse a run folder one of whose entries (`RUN_ENTRIES`) leads out of it, or is
+    neither a file nor a folder (a FIFO ``metrics.jsonl`` would block the run for good).
 
     Raises:
-        OutputError: naming the entry and where it leads.
+        OutputError: naming the entry and where it leads, or what it is.
     """
     for name in RUN_ENTRIES:
-        inside(run_dir, Path(run_dir) / name)
+        path = inside(run_dir, Path(run_dir) / name)
+        if path.exists() and not (path.is_file() or path.is_dir()):
+            raise OutputError(f"{path}: not a file or a folder (a pipe, socket or device); "
+                              "a run's entries must be files (remove it)")

@@ -92,6 +92,7 @@ from neus_l0.train.step import (
     make_scaler,
     next_batch_size,
     render_and_loss,
+    resumed_batch_size,
     train_step,
 )
 from neus_l0.train.watchdog import Watchdog
@@ -174,7 +175,7 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
     if state is not None:
         run.iteration, rays = restore_training(ckpt, state, run.model, run.optimizer,
                                                 run.generator, run.scaler, run.occupancy)
-        run.rays = rays or run.rays
+        run.rays = resumed_batch_size(rays, cfg)
         run.last_checkpoint = ckpt
         run.setup.warp = _resumed_warp(state, cfg)
     return run

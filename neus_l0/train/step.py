@@ -112,6 +112,17 @@ def next_batch_size(rays: int, samples: float, cfg: Config) -> int:
     return int(min(max(round(rays * t.sample_budget / samples), lo), hi))
 
 
+def resumed_batch_size(rays: int, cfg: Config) -> int:
+    """The ray count a resumed run continues with: the checkpoint's `rays` within the
+    bounds of `next_batch_size` under the config now in force (``train.batch_size`` itself
+    when the budget is off), so that ``--change-config train.batch_size=N`` takes effect and
+    a damaged count cannot exhaust memory; the config's batch size when `rays` is 0."""
+    t = cfg.train
+    if t.sample_budget <= 0 or rays <= 0:
+        return t.batch_size
+    return int(min(max(rays, max(1, t.batch_size // 8)), 8 * t.batch_size))
+
+
 @dataclasses.dataclass
 class StepInputs:
     """What one step draws and reads before rendering: no generator, no Python number that

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import re
 from pathlib import Path
 
@@ -84,13 +85,21 @@ def last_psnr(run_dir: str | Path) -> tuple[int, float, str] | None:
     return best
 
 
+def _within(run_dir: str | Path, path: Path) -> bool:
+    """Whether `path` stays inside `run_dir` once links are followed."""
+    home = Path(os.path.realpath(run_dir))
+    return home in Path(os.path.realpath(path)).parents
+
+
 def validation_images(run_dir: str | Path) -> list[tuple[int, int, Path]]:
-    """(iteration, view, path) of every ``validation/NNNNNNN_vVVV.png``, by iteration."""
+    """(iteration, view, path) of every ``validation/NNNNNNN_vVVV.png``, by iteration; a
+    link that leads out of the run folder is left out (the page shows nothing from outside
+    the run through a link planted in it)."""
     folder = Path(run_dir) / "validation"
     found = []
     for p in folder.glob("*.png") if folder.is_dir() else ():
         m = _VALIDATION.match(p.name)
-        if m:
+        if m and _within(run_dir, p):
             found.append((int(m.group(1)), int(m.group(2)), p))
     return sorted(found)
 
