@@ -21,6 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from neus_l0.data.image_io import imread_bytes
 from neus_l0.data.views import indexed_files
 from neus_l0.errors import NeusL0Error
 
@@ -385,7 +386,7 @@ def read_masks(scene_dir: str | Path) -> dict[int, np.ndarray]:
         raise NeusL0Error(f"{folder}: no mask files")
     masks = {}
     for i, f in files.items():
-        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        img = imread_bytes(Path(f), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise NeusL0Error(f"{f}: cannot read image")
         if img.ndim == 3:

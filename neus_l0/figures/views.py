@@ -22,6 +22,7 @@ from neus_l0.data.cameras import (
     read_world_mats,
     scale_projection,
 )
+from neus_l0.data.image_io import imread_bytes
 
 #: Half-width of a crop box, in feature radii.
 CROP_MARGIN = 1.3
@@ -67,7 +68,7 @@ def scene_cameras(scene_dir: str | Path) -> list[Camera]:
     else:
         import cv2
 
-        img = cv2.imread(str(sorted((scene_dir / "image").glob("*.png"))[0]))
+        img = imread_bytes(sorted((scene_dir / "image").glob("*.png"))[0], cv2.IMREAD_COLOR)
         h, w = img.shape[:2]
     return [Camera(P, w, h) for P in world_mats]
 

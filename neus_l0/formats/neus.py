@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from neus_l0.data.cameras import decompose_projection
+from neus_l0.data.image_io import imread_bytes
 from neus_l0.data.scene import Scene, scene_summary
 from neus_l0.data.views import (
     PAIRING_RULE,
@@ -162,16 +163,6 @@ def truncated(path: Path) -> str | None:
             and b"\xff\xd9" not in tail.rstrip(b"\x00 \r\n")[-2:]):
         return "truncated JPEG (no end-of-image marker)"
     return None
-
-
-def imread_bytes(path: Path, flags: int) -> np.ndarray | None:
-    """`cv2.imread` of the file's bytes: OpenCV's own open crashes on a path that is not
-    valid UTF-8 (a name with a 0xff byte); None when the file does not read or decode."""
-    try:
-        data = np.fromfile(path, np.uint8)
-    except (OSError, ValueError):
-        return None
-    return cv2.imdecode(data, flags) if data.size else None
 
 
 #: The most pixels a scene image may declare (a 16k x 16k photo; beyond it decoding would

@@ -22,6 +22,7 @@ import numpy as np
 
 from neus_l0.atomic import atomic_write, atomic_write_png, atomic_write_text
 from neus_l0.data.cameras import projection_matrix, sphere_scale_mat
+from neus_l0.data.image_io import imread_bytes
 from neus_l0.data.points import POINTS_FILE, write_points
 from neus_l0.errors import NeusL0Error
 from neus_l0.photos.sparse_io import SparseModel
@@ -134,7 +135,7 @@ def find_masks(mask_dir: str | Path, names: list[str]) -> dict[str, Path]:
 
 
 def _read(path: Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
-    img = cv2.imread(str(path), flags)
+    img = imread_bytes(Path(path), flags)
     if img is None:
         raise NeusL0Error(f"{path}: unreadable image")
     return img

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from neus_l0.data.image_io import imread_bytes
 from neus_l0.errors import NeusL0Error
 
 #: What `neus-l0 colmap` writes at the top of its scene folder (its own, for --out checks).
@@ -137,8 +138,8 @@ def _preview(out: Path, model, info: dict, sphere) -> None:
 
     picks = np.unique(np.linspace(0, model.n_views - 1, min(PREVIEW_VIEWS, model.n_views))
                       .round().astype(int))
-    images = [cv2.cvtColor(cv2.imread(str(out / "image" / f"{i:03d}.png")), cv2.COLOR_BGR2RGB)
-              for i in picks]
+    images = [cv2.cvtColor(imread_bytes(out / "image" / f"{i:03d}.png", cv2.IMREAD_COLOR),
+                           cv2.COLOR_BGR2RGB) for i in picks]
     write_preview(out / "sphere_preview.png", images, [info["world_mats"][i] for i in picks],
                   model.points, sphere.center, sphere.radius,
                   titles=[model.names[i] for i in picks])

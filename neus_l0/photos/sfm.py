@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from neus_l0.data.image_io import imread_bytes
 from neus_l0.errors import NeusL0Error
 from neus_l0.photos.sparse_io import SparseModel, from_reconstruction
 
@@ -93,7 +94,7 @@ def list_photos(folder: str | Path, same_size: bool = True
     size = None
     sizes = {}
     for p in paths:
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        img = imread_bytes(Path(p), cv2.IMREAD_UNCHANGED)
         if img is None or img.size == 0:
             raise NeusL0Error(f"{p}: unreadable image")
         hw = (int(img.shape[1]), int(img.shape[0]))

@@ -11,6 +11,8 @@ import sys
 import time
 from pathlib import Path
 
+from neus_l0.data.image_io import imread_bytes
+
 #: Size of the demo scene (views, width, height): a step costs the same at any image size,
 #: and a larger image gives the step more distinct pixels to draw from.
 DEMO_SCENE = {"views": 24, "width": 200, "height": 150}
@@ -208,7 +210,7 @@ def draw_comparison(scene_dir, mesh, path, score: dict | None) -> Path:
 
     scene_dir = Path(scene_dir)
     images = sorted((scene_dir / "image").glob("*.png"))
-    img = cv2.imread(str(images[0]))[..., ::-1] / 255.0
+    img = imread_bytes(images[0], cv2.IMREAD_COLOR)[..., ::-1] / 255.0
     h, w = img.shape[:2]
     up = max(1, 300 // w)  # render the meshes at about 300 pixels wide
     P = scale_projection(read_world_mats(scene_dir)[0], up)

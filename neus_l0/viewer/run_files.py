@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from neus_l0.data.image_io import imread_bytes
 from neus_l0.errors import NeusL0Error
 from neus_l0.run.checkpoints import checkpoint_iteration, list_checkpoints
 from neus_l0.run.metrics import read_lines
@@ -110,7 +111,7 @@ def read_rgb(path: Path) -> np.ndarray:
     Raises:
         NeusL0Error: it does not read.
     """
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    bgr = imread_bytes(Path(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise NeusL0Error(f"{path}: not a readable image")
     return np.ascontiguousarray(bgr[..., ::-1])
