@@ -409,6 +409,10 @@ def check_spec(spec: SweepSpec) -> None:
     from neus_l0.mesh.memory import plan_extraction
 
     _check_numbers(spec)
+    names = [Path(s).resolve().name if Path(s).is_dir() else s for s in spec.scenes]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # before any scene is built
+        raise NeusL0Error(f"--scenes: two scenes share a name ({', '.join(twice)})")
     bad = [s for s in spec.samplers if s not in SAMPLERS]
     if bad:
         raise NeusL0Error(f"--samplers: unknown {', '.join(bad)} (choose from "

@@ -18,3 +18,17 @@ def test_planned_runs_get_a_budget_and_the_ladder():
         assert planned.train.budget == 1200 and planned.train.batch_size == 256
         assert planned.train.seed == 1 and planned.sampler.name == "l0"
     assert _spec(60, True, base).load_config().train.batch_size == 128
+
+
+def test_two_scenes_of_one_name_are_refused_before_any_scene_is_built(tmp_path):
+    """``--scenes demo,demo`` (or two folders of one name) fails before synthesising."""
+    import pytest
+
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.experiments.sweep import SweepSpec, check_spec
+
+    spec = SweepSpec(out_dir=tmp_path / "out", scenes=["demo", "demo"], samplers=["l0"],
+                     budgets=[10.0])
+    with pytest.raises(NeusL0Error, match="share a name"):
+        check_spec(spec)
+    assert not (tmp_path / "out").exists()
