@@ -149,8 +149,13 @@ class Validation(TrainingCallback):
                   within=run.run_dir)
         w = img.shape[1] // 3
         value = psnr(img[:, w:2 * w] / 255.0, img[:, :w] / 255.0)
-        append_line(run.run_dir, {"iter": run.iteration, "val_psnr": value, "val_view": view,
-                                  "val_heldout": held})
+        line = {"iter": run.iteration, "val_psnr": value, "val_view": view,
+                "val_heldout": held}
+        if scene.has_masks:  # the object alone: the background's error is not the surface's
+            ds = max(1, run.cfg.train.val_downscale)
+            fg = (scene.masks[i, ::ds, ::ds] > 0.5).cpu().numpy()
+            line["val_psnr_mask"] = psnr(img[:, w:2 * w] / 255.0, img[:, :w] / 255.0, fg)
+        append_line(run.run_dir, line)
         for sink in self.sinks:
             sink(run.iteration, f"validation/v{view:03d}", img)
         for sink in self.scalar_sinks:

@@ -27,7 +27,7 @@ from neus_l0.train.losses import LOSS_NAMES
 CURVES: dict[str, tuple[str, ...]] = {
     "loss": tuple(n for n in LOSS_NAMES if n.endswith("loss")),  # named once, in train/
     "PSNR (dB)": ("psnr",),
-    "validation PSNR (dB)": ("val_psnr",),
+    "validation PSNR (dB)": ("val_psnr", "val_psnr_mask"),
     "sharpness inv_s": ("inv_s",),
     "learning rate": ("lr",),
 }
@@ -75,11 +75,12 @@ def curves(run_dir: str | Path) -> dict[str, dict[str, tuple[np.ndarray, np.ndar
 
 
 def last_psnr(run_dir: str | Path) -> tuple[int, float, str] | None:
-    """(iteration, PSNR, key) of the newest PSNR the run logged (``val_psnr`` before
-    ``psnr`` at the same iteration), or None."""
+    """(iteration, PSNR, key) of the newest PSNR the run logged (at one iteration the
+    validation PSNR inside the masks before the whole validation image's, before the training
+    batch's), or None."""
     best = None
     for m in read_lines(run_dir):
-        for key in ("psnr", "val_psnr"):
+        for key in ("psnr", "val_psnr", "val_psnr_mask"):
             if "iter" in m and isinstance(m.get(key), (int, float)):
                 if best is None or m["iter"] >= best[0]:
                     best = (int(m["iter"]), float(m[key]), key)

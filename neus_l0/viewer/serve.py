@@ -43,7 +43,8 @@ def status_markdown(run_dir: Path, shown: int | None) -> str:
     lines = [f"**{run_dir.name}**"]
     if last is not None:
         it, value, key = last
-        what = "validation PSNR" if key == "val_psnr" else "training PSNR"
+        what = {"val_psnr": "validation PSNR", "val_psnr_mask": "validation PSNR inside the mask"
+                }.get(key, "training PSNR")
         lines.append(f"last PSNR: **{value:.2f} dB** ({what}, iteration {it})")
     lines.append(f"mesh: iteration {shown}" if shown is not None else "mesh: none yet")
     return "  \n".join(lines)
