@@ -169,6 +169,17 @@ def trained96(scene96, small_overrides, tmp_path_factory) -> Path:
     return run
 
 
+@pytest.fixture(scope="session")
+def tiny_trained(tiny_scene, small_overrides, tmp_path_factory) -> Path:
+    """A run of 4 iterations on `tiny_scene` (checkpoints at 2 and 4), trained by the CLI
+    (read-only: tests copy it)."""
+    run = tmp_path_factory.mktemp("tiny_trained") / "run"
+    assert main(["train", str(tiny_scene), "--conf", "demo", "--out", str(run), "--quiet",
+                 "--threads", "1", *small_overrides, "train.iters=4",
+                 "train.save_every=2"]) == 0
+    return run
+
+
 @pytest.fixture
 def run_copy(trained96, tmp_path) -> Path:
     """A copy of `trained96` to resume, damage or mesh."""

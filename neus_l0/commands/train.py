@@ -75,7 +75,6 @@ def run(args: argparse.Namespace) -> int:
         fresh_config,
         process_seconds,
         resumed_config,
-        run_files,
         with_budget,
     )
 
@@ -117,6 +116,15 @@ def run(args: argparse.Namespace) -> int:
         callbacks.append(LiveViewer(args.viewer))
     result = train(scene, cfg, run_dir, device=device, resume=args.resume,
                    progress=not args.quiet, stop_at=args.stop_at, callbacks=callbacks)
+    return report(args, run_dir, result, asked)
+
+
+def report(args: argparse.Namespace, run_dir, result, asked: float) -> int:
+    """Print how the run ended (and how much of its budget it took); the exit status."""
+    import sys
+
+    from neus_l0.train.run_config import process_seconds, run_files
+
     if result.signal:
         print(f"neus-l0 train: stopped by {result.signal} at iteration {result.iteration}; "
               f"checkpoint {result.checkpoint} written; continue with: neus-l0 train "

@@ -250,6 +250,22 @@ def set_level_steps(model: NeuSModel, steps: int) -> None:
             m.steps.fill_(steps)
 
 
+
+def _schedule_position(model: NeuSModel, optimizer: torch.optim.Optimizer, cfg: Config,
+                       iteration: int, setup: StepSetup) -> float:
+    """Where the step stands on the schedule (the real iteration, unless a budget compressed
+    the rest: `StepSetup.warp`), with the learning rate and the hash grids' levels set there;
+    at log steps the pool's error map refreshes its draw table. Host-side only."""
+    at = iteration
+    if setup.warp is not None and setup.warp.warped:
+        at = setup.warp.at(iteration)
+        set_level_steps(model, int(at))
+    set_learning_rate(optimizer, cfg, at)
+    emap = setup.pool.error_map if setup.pool is not None else None
+    if emap is not None and iteration % cfg.train.log_every == 0:
+        refresh_table(emap)  # the draw table follows the map at log steps
+    return at
+
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,
                iteration: int, generator: torch.Generator, *,
                occupancy: OccupancyGrid | None = None,
@@ -280,14 +296,8 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     """
     # learning rate, batch and random numbers, grid update
     setup = setup or StepSetup()
-    at = iteration  # the schedule's iteration: the real one unless a budget compressed it
-    if setup.warp is not None and setup.warp.warped:
-        at = setup.warp.at(iteration)
-        set_level_steps(model, int(at))
-    set_learning_rate(optimizer, cfg, at)
+    at = _schedule_position(model, optimizer, cfg, iteration, setup)
     emap = setup.pool.error_map if setup.pool is not None else None
-    if emap is not None and iteration % cfg.train.log_every == 0:
-        refresh_table(emap)  # the draw table follows the map at log steps
     inputs = draw_step_inputs(scene, cfg, at, batch_size or cfg.train.batch_size,
                               generator, setup.pool)
     update_occupancy(occupancy, model, cfg, iteration)

@@ -21,23 +21,6 @@ from neus_l0.cli import main
 SYNTH_SMALL = ("--width", "32", "--height", "24", "--no-progress")
 
 
-def _error_line(err: str, command: str, *named: str) -> str:
-    """The one ``neus-l0 COMMAND: error:`` line of `err`, naming every `named`; no traceback."""
-    assert "Traceback" not in err, err
-    lines = [ln for ln in err.splitlines() if ln.startswith(f"neus-l0 {command}: error: ")]
-    assert len(lines) == 1, err
-    for needle in named:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
-
-def _refused(capsys, argv: list[str], *named: str) -> str:
-    rc = main(argv)
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    return _error_line(err, argv[0], *named)
-
-
 def _snapshot(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes()
             for p in sorted(folder.rglob("*")) if p.is_file()}
@@ -85,10 +68,10 @@ def _argvs(scene: Path, run: Path, out: Path) -> dict[str, list[str]]:
 @pytest.mark.parametrize("command", ["train", "demo", "synth", "colmap", "render", "bench",
                                      "eval", "figures", "study"])
 def test_a_users_folder_is_refused_by_every_command(tiny_scene, trained, users_folder,
-                                                    capsys, command):
+                                                    command, refused):
     before = _snapshot(users_folder)
     argv = _argvs(tiny_scene, trained, users_folder)[command]
-    _refused(capsys, argv, str(users_folder), "holds", "give a new or empty folder")
+    refused(argv, str(users_folder), "holds", "give a new or empty folder")
     assert _snapshot(users_folder) == before
     assert sorted(p.name for p in users_folder.iterdir()) == ["config.yaml", "metrics.jsonl",
                                                               "notes.txt"]
@@ -106,11 +89,11 @@ def test_train_into_an_empty_folder_and_its_own_run_works(tiny_scene, small, tmp
     assert (out / "notes.txt").read_text() == "my notes on this run\n"
 
 
-def test_a_run_folder_is_not_a_render_folder(trained, tmp_path, capsys):
+def test_a_run_folder_is_not_a_render_folder(trained, tmp_path, refused):
     copy = Path(shutil.copytree(trained, tmp_path / "run"))
     other = tmp_path / "other"
     shutil.copytree(trained, other)
-    _refused(capsys, ["render", str(copy), "--out", str(other), "--frames", "2", "--quiet"],
+    refused(["render", str(copy), "--out", str(other), "--frames", "2", "--quiet"],
              str(other), "holds")
 
 
@@ -134,20 +117,20 @@ def test_synth_lists_what_it_wrote(synth_scene):
 
 @pytest.mark.parametrize("stranger", ["image/retouched_000.psd", "mask/my_photo.jpg",
                                       "image/003.png", "notes.txt"])
-def test_synth_keeps_a_file_it_did_not_write(synth_scene, capsys, stranger):
+def test_synth_keeps_a_file_it_did_not_write(synth_scene, stranger, refused):
     (synth_scene / stranger).write_bytes(b"the user's work")
     before = _snapshot(synth_scene)
-    _refused(capsys, ["synth", "demo", str(synth_scene), "--views", "2", *SYNTH_SMALL],
+    refused(["synth", "demo", str(synth_scene), "--views", "2", *SYNTH_SMALL],
              str(synth_scene), stranger, "did not write")
     assert _snapshot(synth_scene) == before
 
 
-def test_synth_over_an_older_scene_without_a_list_holds_to_the_layout(synth_scene, capsys):
+def test_synth_over_an_older_scene_without_a_list_holds_to_the_layout(synth_scene, refused):
     meta = json.loads((synth_scene / "scene.json").read_text())
     del meta["files"]
     (synth_scene / "scene.json").write_text(json.dumps(meta))
     (synth_scene / "image" / "retouched_000.psd").write_bytes(b"x")
-    _refused(capsys, ["synth", "demo", str(synth_scene), "--views", "2", *SYNTH_SMALL],
+    refused(["synth", "demo", str(synth_scene), "--views", "2", *SYNTH_SMALL],
              "image/retouched_000.psd")
     (synth_scene / "image" / "retouched_000.psd").unlink()
     assert main(["synth", "demo", str(synth_scene), "--views", "2", *SYNTH_SMALL]) == 0
@@ -158,27 +141,27 @@ def test_synth_over_an_older_scene_without_a_list_holds_to_the_layout(synth_scen
 # an output is never an input
 
 
-def test_eval_json_onto_its_mesh_is_refused(tiny_scene, tmp_path, capsys):
+def test_eval_json_onto_its_mesh_is_refused(tiny_scene, tmp_path, refused):
     mesh = Path(shutil.copy(tiny_scene / "gt_mesh.ply", tmp_path / "m.ply"))
     before = mesh.read_bytes()
-    _refused(capsys, ["eval", str(mesh), "--scene", str(tiny_scene), "--json", str(mesh)],
+    refused(["eval", str(mesh), "--scene", str(tiny_scene), "--json", str(mesh)],
              f"--json {mesh}", "is the input")
     assert mesh.read_bytes() == before
 
 
-def test_mesh_onto_its_checkpoint_is_refused(trained, tmp_path, capsys):
+def test_mesh_onto_its_checkpoint_is_refused(trained, tmp_path, refused):
     run = Path(shutil.copytree(trained, tmp_path / "run"))
     ckpt = sorted((run / "checkpoints").glob("ckpt_*.pt"))[-1]
-    _refused(capsys, ["mesh", str(run), "--checkpoint", str(ckpt), "--out", str(ckpt)],
+    refused(["mesh", str(run), "--checkpoint", str(ckpt), "--out", str(ckpt)],
              "is the input")
 
 
-def test_train_into_its_scene_is_refused(tiny_scene, tmp_path, capsys):
+def test_train_into_its_scene_is_refused(tiny_scene, tmp_path, refused):
     scene = Path(shutil.copytree(tiny_scene, tmp_path / "scene"))
-    _refused(capsys, ["train", str(scene), "--conf", "demo", "--out", str(scene), "--quiet"],
+    refused(["train", str(scene), "--conf", "demo", "--out", str(scene), "--quiet"],
              "is the input")
 
 
-def test_synth_onto_its_mesh_is_refused(tiny_scene, tmp_path, capsys):
+def test_synth_onto_its_mesh_is_refused(tiny_scene, tmp_path, refused):
     mesh = Path(shutil.copy(tiny_scene / "gt_mesh.ply", tmp_path / "m.ply"))
-    _refused(capsys, ["synth", str(mesh), str(mesh), *SYNTH_SMALL], "is the input")
+    refused(["synth", str(mesh), str(mesh), *SYNTH_SMALL], "is the input")

@@ -6,39 +6,23 @@ from __future__ import annotations
 
 import pytest
 
-from neus_l0.cli import main
-
-
-def one_error(capsys, argv: list[str], *named: str) -> str:
-    """Run the CLI; assert exit 2 and stderr is one ``neus-l0 CMD: error:`` line naming
-    every `named`."""
-    rc = main(argv)
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert "Traceback" not in err and len(lines) == 1, err
-    assert lines[0].startswith(f"neus-l0 {argv[0]}: error: "), err
-    for needle in named:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
 
 @pytest.mark.parametrize("text, named", [
     ("train:\n  iters: [1, 2\n  lr: 3\n", ("line 3", "expected ','")),
     ("train: !!python/object/apply:os.system ['touch PWNED']\n", ("line 1", "no Python tags")),
     ("a: b: c\n", ("line 1, column 5", "mapping values")),
 ])
-def test_malformed_conf_is_one_line(capsys, tmp_path, text, named):
+def test_malformed_conf_is_one_line(tmp_path, text, named, refused):
     conf = tmp_path / "bad.yaml"
     conf.write_text(text, encoding="utf-8")
-    one_error(capsys, ["config", "show", "--conf", str(conf)], str(conf), *named)
+    refused(["config", "show", "--conf", str(conf)], str(conf), *named)
     assert not (tmp_path / "PWNED").exists()
 
 
-def test_garbage_run_config_is_one_line(capsys, tmp_path, tiny_scene):
+def test_garbage_run_config_is_one_line(tmp_path, tiny_scene, refused):
     run = tmp_path / "run"
     (run / "checkpoints").mkdir(parents=True)
     (run / "config.yaml").write_bytes(bytes(range(256)) * 4)
     (run / "run.json").write_text("{}\n")  # a run folder of this tool, its config garbage
-    one_error(capsys, ["train", str(tiny_scene), "--out", str(run), "--resume",
+    refused(["train", str(tiny_scene), "--out", str(run), "--resume",
                        "--threads", "1"], str(run / "config.yaml"), "not UTF-8")

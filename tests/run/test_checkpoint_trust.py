@@ -24,23 +24,6 @@ from neus_l0.run.checkpoint_schema import schema_problem, to_plain
 from neus_l0.run.checkpoints import list_checkpoints, load_checkpoint, load_newest_checkpoint
 
 
-def _error_line(err: str, command: str, *named: str) -> str:
-    """The one ``neus-l0 COMMAND: error:`` line of `err`, naming every `named`; no traceback."""
-    assert "Traceback" not in err, err
-    lines = [ln for ln in err.splitlines() if ln.startswith(f"neus-l0 {command}: error: ")]
-    assert len(lines) == 1, err
-    for needle in named:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
-
-def _refused(capsys, argv: list[str], *named: str) -> str:
-    rc = main(argv)
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    return _error_line(err, argv[0], *named)
-
-
 class _Payload:
     """Unpickles as ``open(marker, "w")``: a file appears if the pickle is ever run."""
 
@@ -51,20 +34,10 @@ class _Payload:
         return (builtins.open, (self.marker, "w"))
 
 
-@pytest.fixture(scope="module")
-def trained(tiny_scene, small_overrides, tmp_path_factory) -> Path:
-    """A run of 4 iterations on the tiny scene (checkpoints at 2 and 4); read-only."""
-    run = tmp_path_factory.mktemp("trust") / "run"
-    assert main(["train", str(tiny_scene), "--conf", "demo", "--out", str(run), "--quiet",
-                 "--threads", "1", *small_overrides, "train.iters=4",
-                 "train.save_every=2"]) == 0
-    return run
-
-
 @pytest.fixture
-def run(trained, tmp_path) -> Path:
-    """A copy of `trained` to plant files in."""
-    return Path(shutil.copytree(trained, tmp_path / "run"))
+def run(tiny_trained, tmp_path) -> Path:
+    """A copy of `tiny_trained` to plant files in."""
+    return Path(shutil.copytree(tiny_trained, tmp_path / "run"))
 
 
 def _plant(run: Path, extra: dict, iteration: int = 6) -> Path:
@@ -76,14 +49,14 @@ def _plant(run: Path, extra: dict, iteration: int = 6) -> Path:
     return path
 
 
-def test_every_checkpoint_training_writes_is_plain_data(trained):
-    for path in list_checkpoints(trained):
+def test_every_checkpoint_training_writes_is_plain_data(tiny_trained):
+    for path in list_checkpoints(tiny_trained):
         state = torch.load(path, weights_only=True)
         assert schema_problem(state) is None
         assert isinstance(state["scene_fingerprint"], str) and state["scene_fingerprint"]
 
 
-def test_a_planted_pickle_runs_through_no_command(run, tiny_scene, tmp_path, capsys):
+def test_a_planted_pickle_runs_through_no_command(run, tiny_scene, tmp_path, refused):
     marker = tmp_path / "PWNED"
     evil = _plant(run, {"note": _Payload(marker)})
     argvs = [
@@ -95,7 +68,7 @@ def test_a_planted_pickle_runs_through_no_command(run, tiny_scene, tmp_path, cap
          "train.iters=8"],
     ]
     for argv in argvs:
-        line = _refused(capsys, argv, str(evil), "not loaded",
+        line = refused(argv, str(evil), "not loaded",
                         f"neus-l0 checkpoint upgrade {evil} --trust-pickle")
         assert "runs any code" in line
         assert not marker.exists(), argv
@@ -103,14 +76,14 @@ def test_a_planted_pickle_runs_through_no_command(run, tiny_scene, tmp_path, cap
     assert not (tmp_path / "m.ply").exists() and not (run / "render").exists()
 
 
-def test_upgrade_converts_only_when_trusted(run, tmp_path, capsys):
+def test_upgrade_converts_only_when_trusted(run, tmp_path, capsys, refused):
     """An older checkpoint (numpy scale_mat, numpy iteration) is refused with the command;
     the command refuses without --trust-pickle; with it, the file loads safely."""
     old = _plant(run, {"scale_mat": np.eye(4), "iteration": np.int64(6)})
     before = old.read_bytes()
-    _refused(capsys, ["mesh", str(run), "--resolution", "16", "--out", str(tmp_path / "m.ply")],
+    refused(["mesh", str(run), "--resolution", "16", "--out", str(tmp_path / "m.ply")],
              str(old), "checkpoint upgrade")
-    _refused(capsys, ["checkpoint", "upgrade", str(old)], str(old), "--trust-pickle",
+    refused(["checkpoint", "upgrade", str(old)], str(old), "--trust-pickle",
              "runs any code")
     assert old.read_bytes() == before
     assert main(["checkpoint", "upgrade", str(old), "--trust-pickle"]) == 0
@@ -148,7 +121,8 @@ def test_a_checkpoint_of_the_wrong_shape_is_set_aside(run, capsys, case):
 
 
 @pytest.mark.parametrize("case", ["no rng", "iteration abc"])
-def test_a_wrong_shape_checkpoint_given_explicitly_is_one_line(run, tmp_path, capsys, case):
+def test_a_wrong_shape_checkpoint_given_explicitly_is_one_line(run, tmp_path, case,
+                                                                refused):
     key, value, why = BROKEN[case]
     state = torch.load(list_checkpoints(run)[-1], weights_only=True)
     if value is None:
@@ -157,7 +131,7 @@ def test_a_wrong_shape_checkpoint_given_explicitly_is_one_line(run, tmp_path, ca
         state[key] = value
     bad = tmp_path / "ckpt_0000006.pt"
     torch.save(state, bad)
-    _refused(capsys, ["mesh", str(run), "--checkpoint", str(bad), "--resolution", "16",
+    refused(["mesh", str(run), "--checkpoint", str(bad), "--resolution", "16",
                       "--out", str(tmp_path / "m.ply")], str(bad), why)
 
 

@@ -22,41 +22,14 @@ from neus_l0.cli import main
 from neus_l0.run.checkpoints import list_checkpoints
 
 
-def _error_line(err: str, command: str, *named: str) -> str:
-    """The one ``neus-l0 COMMAND: error:`` line of `err`, naming every `named`; no traceback."""
-    assert "Traceback" not in err, err
-    lines = [ln for ln in err.splitlines() if ln.startswith(f"neus-l0 {command}: error: ")]
-    assert len(lines) == 1, err
-    for needle in named:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
-
-def _refused(capsys, argv: list[str], *named: str) -> str:
-    rc = main(argv)
-    err = capsys.readouterr().err
-    assert rc == 2, err
-    return _error_line(err, argv[0], *named)
-
-
 def _resume(scene: Path, run: Path, *extra: str) -> list[str]:
     return ["train", str(scene), "--out", str(run), "--resume", "--quiet", "--threads", "1",
             *extra]
 
 
-@pytest.fixture(scope="module")
-def trained(tiny_scene, small_overrides, tmp_path_factory) -> Path:
-    """A run of 4 iterations on the tiny scene (checkpoints at 2 and 4); read-only."""
-    run = tmp_path_factory.mktemp("writes") / "run"
-    assert main(["train", str(tiny_scene), "--conf", "demo", "--out", str(run), "--quiet",
-                 "--threads", "1", *small_overrides, "train.iters=4",
-                 "train.save_every=2"]) == 0
-    return run
-
-
 @pytest.fixture
-def run(trained, tmp_path) -> Path:
-    return Path(shutil.copytree(trained, tmp_path / "run"))
+def run(tiny_trained, tmp_path) -> Path:
+    return Path(shutil.copytree(tiny_trained, tmp_path / "run"))
 
 
 @pytest.fixture
@@ -70,7 +43,7 @@ def other_scene(tiny_scene, tmp_path) -> Path:
 
 @pytest.mark.parametrize("name", ["resumes.jsonl", "metrics.jsonl", "run.json"])
 def test_a_file_linked_out_of_the_run_is_not_written_through(run, tiny_scene, tmp_path,
-                                                             capsys, name):
+                                                             name, refused):
     """train --resume with a changed train.iters appends to resumes.jsonl, rewrites
     metrics.jsonl and run.json: a link out of the run is refused, the target untouched."""
     outside = tmp_path / "outside.txt"
@@ -79,40 +52,39 @@ def test_a_file_linked_out_of_the_run_is_not_written_through(run, tiny_scene, tm
     if target.exists():
         target.unlink()
     target.symlink_to(outside)
-    _refused(capsys, _resume(tiny_scene, run, "train.iters=6"), str(target), "symlink",
+    refused(_resume(tiny_scene, run, "train.iters=6"), str(target), "symlink",
              "out of")
     assert outside.read_text() == "the user's file\n"
 
 
 @pytest.mark.parametrize("name", ["checkpoints", "hull.pt"])
 def test_an_entry_linked_out_of_the_run_is_refused_before_training(run, tiny_scene, tmp_path,
-                                                                   capsys, name):
+                                                                   name, refused):
     elsewhere = tmp_path / "elsewhere"
     shutil.move(run / name, elsewhere)
     (run / name).symlink_to(elsewhere)
     before = sorted(p.name for p in elsewhere.iterdir()) if elsewhere.is_dir() else None
-    _refused(capsys, _resume(tiny_scene, run, "train.iters=6"), str(run / name), "symlink")
+    refused(_resume(tiny_scene, run, "train.iters=6"), str(run / name), "symlink")
     if before is not None:
         assert sorted(p.name for p in elsewhere.iterdir()) == before
 
 
-def test_a_resume_without_run_json_on_another_scene_is_refused(run, other_scene, capsys):
+def test_a_resume_without_run_json_on_another_scene_is_refused(run, other_scene, refused):
     (run / "run.json").unlink()
     before = [p.name for p in list_checkpoints(run)]
-    _refused(capsys, _resume(other_scene, run, "train.iters=6"), str(run), "was trained on",
+    refused(_resume(other_scene, run, "train.iters=6"), str(run), "was trained on",
              f"not on {other_scene}")
     assert [p.name for p in list_checkpoints(run)] == before
 
 
-def test_a_resume_without_run_json_on_its_scene_continues_and_rebuilds_it(run, tiny_scene,
-                                                                          capsys):
+def test_a_resume_without_run_json_on_its_scene_continues_and_rebuilds_it(run, tiny_scene):
     (run / "run.json").unlink()
     assert main(_resume(tiny_scene, run, "train.iters=6")) == 0
     meta = json.loads((run / "run.json").read_text())
     assert meta["scene"] == str(tiny_scene) and meta["scene_fingerprint"]
 
 
-def test_no_record_of_the_scene_at_all_is_refused(run, tiny_scene, capsys):
+def test_no_record_of_the_scene_at_all_is_refused(run, tiny_scene, refused):
     """run.json gone and a checkpoint from before fingerprints: the scene cannot be
     checked, so the resume is refused."""
     (run / "run.json").unlink()
@@ -120,7 +92,7 @@ def test_no_record_of_the_scene_at_all_is_refused(run, tiny_scene, capsys):
         state = torch.load(path, weights_only=True)
         del state["scene_fingerprint"]
         torch.save(state, path)
-    _refused(capsys, _resume(tiny_scene, run, "train.iters=6"), str(run / "run.json"),
+    refused(_resume(tiny_scene, run, "train.iters=6"), str(run / "run.json"),
              "cannot be checked")
 
 
@@ -137,7 +109,8 @@ def test_non_utf8_bytes_in_metrics_cost_their_line(run, tiny_scene, capsys):
     assert [json.loads(ln)["iter"] for ln in text.splitlines()][-1] == 6
 
 
-def test_a_read_only_run_folder_is_one_line(tiny_scene, small, tmp_path, capsys, monkeypatch):
+def test_a_read_only_run_folder_is_one_line(tiny_scene, small, tmp_path, monkeypatch,
+                                            refused):
     """The lock is the first file a run creates; on a read-only mount (simulated: the tests
     may run as root, whom permissions do not stop) that is one line naming the folder."""
     real_open = os.open
@@ -149,6 +122,6 @@ def test_a_read_only_run_folder_is_one_line(tiny_scene, small, tmp_path, capsys,
 
     monkeypatch.setattr(os, "open", read_only)
     run = tmp_path / "run"
-    _refused(capsys, ["train", str(tiny_scene), "--conf", "demo", "--out", str(run), "--quiet",
+    refused(["train", str(tiny_scene), "--conf", "demo", "--out", str(run), "--quiet",
                       "--threads", "1", *small, "train.iters=2"], str(run), "cannot write",
              "Read-only file system")

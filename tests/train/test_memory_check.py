@@ -5,29 +5,16 @@ from __future__ import annotations
 
 import pytest
 
-from neus_l0.cli import main
 from neus_l0.config.load import load_config
 from neus_l0.errors import NeusL0Error
 from neus_l0.fields.model import make_model
 from neus_l0.train.preflight import check_step_memory, step_bytes
 
 
-def one_error(capsys, argv: list[str], *named: str) -> str:
-    """Run the CLI; assert exit 2 and one ``neus-l0 CMD: error:`` line naming `named`."""
-    rc = main(argv)
-    err = capsys.readouterr().err
-    assert rc == 2 and "Traceback" not in err, err
-    lines = [ln for ln in err.splitlines() if ln.startswith(f"neus-l0 {argv[0]}: error: ")]
-    assert len(lines) == 1, err
-    for needle in named:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
-
-
 @pytest.mark.parametrize("override", ["train.batch_size=3000000", "render.n_samples=100000"])
-def test_step_too_large_is_refused(capsys, tmp_path, tiny_scene, override):
+def test_step_too_large_is_refused(tmp_path, tiny_scene, override, refused):
     run = tmp_path / "run"
-    line = one_error(capsys, ["train", str(tiny_scene), "--out", str(run), "--conf", "demo",
+    line = refused(["train", str(tiny_scene), "--out", str(run), "--conf", "demo",
                               "--threads", "1", "--quiet", override],
                      "one training step", "GiB", "largest batch that fits")
     assert not (run / "checkpoints").exists() or not any((run / "checkpoints").iterdir()), line
