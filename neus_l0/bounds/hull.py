@@ -189,7 +189,7 @@ class VisualHull:
 
     def save(self, path: str | Path) -> Path:
         """Write the hull atomically (torch.save of `state_dict`)."""
-        return atomic_torch_save(path, self.state_dict())
+        return atomic_torch_save(path, self.state_dict(), within=Path(path).parent)
 
     @classmethod
     def load(cls, path: str | Path, device: str | torch.device = "cpu") -> VisualHull:

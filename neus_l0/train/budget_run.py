@@ -138,7 +138,8 @@ class BudgetKeeper(TrainingCallback):
             "budget_s": p.budget_s, "spent_before_steps_s": round(p.spent_s, 2),
             "planned_iters": p.iters, "costs": dataclasses.asdict(p.costs),
             "estimated_s": round(p.estimated_s, 2), "retargets": self.retargets,
-            "done_iters": done, "steps_end_s": round(self.spent(), 2) if done else None})
+            "done_iters": done, "steps_end_s": round(self.spent(), 2) if done else None},
+            within=run.run_dir)
 
 
 class EstimateLine(TrainingCallback):
@@ -167,7 +168,8 @@ class EstimateLine(TrainingCallback):
         total = now + (run.end - run.iteration) * step_s
         atomic_write_json(run.run_dir / "estimate.json", {
             "iter": run.iteration, "step_s": round(step_s, 5), "measured_steps": n,
-            "loop_s_now": round(now, 2), "estimated_loop_s": round(total, 2)})
+            "loop_s_now": round(now, 2), "estimated_loop_s": round(total, 2)},
+            within=run.run_dir)
         if total > LONG_RUN_S:
             _say(f"this run should take about {_hms(total)} ({run.end - run.iteration} "
                  f"iterations left at {step_s:.2f} s a step, measured on {n} steps); "

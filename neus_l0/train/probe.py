@@ -71,7 +71,7 @@ def checkpoint_seconds(run: RunState) -> float:
     path = run.run_dir / ".budget_probe.pt"
     t0 = time.monotonic()
     try:
-        atomic_torch_save(path, run.checkpoint_state())
+        atomic_torch_save(path, run.checkpoint_state(), within=run.run_dir)
         return time.monotonic() - t0
     finally:
         path.unlink(missing_ok=True)
