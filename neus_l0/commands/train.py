@@ -85,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
     if not str(args.out).isprintable() or "\udc80" <= max(str(args.out)) <= "\udcff":
         raise NeusL0Error(f"--out {args.out!r}: a name with bytes that are not UTF-8 text or "
                           "with control characters; TensorBoard cannot write there (rename it)")
+    if args.viewer is not None and not 0 <= args.viewer < 65536:
+        raise NeusL0Error(f"--viewer {args.viewer}: a port must be 0..65535 (0: a free one)")
     run_dir = check_output_dir(args.out, "--out", RUN_RECORDS, RUN_LEFTOVERS, "a run folder")
     if args.holdout is not None:
         args.overrides = [*args.overrides, f"train.holdout={args.holdout}"]

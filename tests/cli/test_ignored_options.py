@@ -32,3 +32,10 @@ def test_change_config_without_resume_is_refused(tmp_path, tiny_scene, refused):
 def test_test_views_with_orbit_is_refused(tmp_path, refused):
     refused(["render", str(tmp_path), "--test-views", "1"], "--test-views",
               "--views test")
+
+
+def test_a_viewer_port_out_of_range_is_refused_before_any_work(tiny_scene, tmp_path, refused):
+    run = tmp_path / "run"
+    refused(["train", str(tiny_scene), "--out", str(run), "--viewer", "99999", "--threads",
+             "1"], "--viewer 99999", "0..65535")
+    assert not run.exists()
