@@ -3,7 +3,7 @@
 Usage:
     python tools/diagnose_pits.py SCENE [--conf demo] [--rays 96] [--budgets 16+16,32+32]
                                   [--out diag.json] [--train-seconds S --fraction F
-                                  --tile T]
+                                  --tile T --signal colour|depth]
 
 SCENE is a `pits-deep` folder (``neus-l0 synth pits-deep SCENE``). Every pixel's first true
 hit (``gt_depth.npz``) is labelled by the exact geometry of the deep pit
@@ -22,7 +22,8 @@ surface (everything else the object shows), or nothing. Per label it prints:
   0.01) before the hit: rays grazing the rim or a rod on their way to the floor.
 
 With ``--train-seconds S`` it also trains the config for S seconds (one thread, eager) with
-``train.error_map.fraction`` `--fraction` and tiles of `--tile` pixels, and prints at each
+``train.error_map.fraction`` `--fraction`, tiles of `--tile` pixels and the map's signal
+`--signal` (``train.error_map.signal``), and prints at each
 log step the rays a step draws per label under the map's table and the mean running error
 of the label's pixels: whether the map finds the pit.
 """
@@ -186,11 +187,12 @@ class _RaysWhereTheMapDraws(TrainingCallback):
 
 
 def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float, fraction: float,
-                  tile: int = 8) -> list[dict]:
+                  tile: int = 8, signal: str = "colour") -> list[dict]:
     """Train config `conf` with ``train.error_map.fraction`` for `seconds` (one thread, eager)
     and return the rays a step draws per label at each log step (the table rebuilt there)."""
     cfg = load_config(conf, [f"train.error_map.fraction={fraction}",
                              f"train.error_map.tile={tile}",
+                             f"train.error_map.signal={signal}",
                                 f"train.max_seconds={seconds}", "train.compile=false",
                                 "train.threads=1", "train.val_every=0", "train.save_every=0",
                                 "train.tensorboard=false", "train.log_every=100"])
@@ -223,6 +225,8 @@ def main() -> None:
                          "draws (0: no training)")
     ap.add_argument("--fraction", type=float, default=0.5, help="train.error_map.fraction")
     ap.add_argument("--tile", type=int, default=8, help="train.error_map.tile")
+    ap.add_argument("--signal", default="colour", choices=["colour", "depth"],
+                    help="train.error_map.signal")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(args.conf)
@@ -236,15 +240,17 @@ def main() -> None:
     views = view_table(labels, pool_labels, cfg.train.batch_size)
     print(f"pool: {pool.pixels.numel()} pixels ({pool.fraction:.3f} of all), batch "
           f"{cfg.train.batch_size}\n{_markdown(views)}\n")
-    budgets = [(int(a), int(b), 2) for a, b in (s.split("+") for s in args.budgets.split(","))]
-    samples = sample_table(scene, pool, pool_labels, args.rays, budgets)
-    print(_markdown(samples))
+    budgets = [(int(a), int(b), 2) for a, b in (s.split("+") for s in args.budgets.split(",")
+                                                 if s)]
+    samples = sample_table(scene, pool, pool_labels, args.rays, budgets) if budgets else []
+    if samples:
+        print(_markdown(samples))
     drawn = []
     if args.train_seconds > 0:
         drawn = error_map_run(scene, args.conf, labels, args.train_seconds, args.fraction,
-                              args.tile)
+                              args.tile, args.signal)
         print(f"\nrays a step draws per feature, error map fraction {args.fraction}, tile "
-              f"{args.tile}\n"
+              f"{args.tile}, signal {args.signal}\n"
               f"{_markdown(drawn)}")
     if args.out:
         args.out.write_text(json.dumps({"views": views, "samples": samples, "error_map": drawn},

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import shutil
+import sys
 
 from neus_l0.commands._overrides import accept_overrides
 from neus_l0.config.load import conf_names
@@ -61,8 +63,6 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
 
 
 def run(args: argparse.Namespace) -> int:
-    import sys
-
     from neus_l0.commands._paths import check_not_input, check_output_dir
     from neus_l0.commands._threads import check_threads
     from neus_l0.config.duration import parse_seconds
@@ -70,13 +70,9 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.errors import NeusL0Error
     from neus_l0.formats.open import open_scene
     from neus_l0.run.folder import RUN_LEFTOVERS, RUN_RECORDS
+    from neus_l0.train.budget_run import BudgetTooShort
     from neus_l0.train.loop import train
-    from neus_l0.train.run_config import (
-        fresh_config,
-        process_seconds,
-        resumed_config,
-        with_budget,
-    )
+    from neus_l0.train.run_config import fresh_config, process_seconds, resumed_config, with_budget
 
     if args.change_config and not args.resume:
         raise NeusL0Error("--change-config allows a resumed run to change its config; "
@@ -109,22 +105,29 @@ def run(args: argparse.Namespace) -> int:
               "--threads N to set)", file=sys.stderr, flush=True)
     scene = open_scene(args.data, downscale=cfg.data.downscale, device=device)
     asked = cfg.train.budget
+    given = f"--budget {args.budget}" if args.budget else f"train.budget={asked:g}"
     if asked > 0:  # train() counts from its call: hand it what start-up left
         cfg = with_budget(cfg, asked - process_seconds())
+        if cfg.train.budget <= 0:
+            raise NeusL0Error(f"{given}: too short: start-up alone took {process_seconds():.0f} s")
     callbacks = []
     if args.viewer is not None:
         from neus_l0.viewer.live import LiveViewer
 
         callbacks.append(LiveViewer(args.viewer))
-    result = train(scene, cfg, run_dir, device=device, resume=args.resume,
-                   progress=not args.quiet, stop_at=args.stop_at, callbacks=callbacks)
+    fresh = not run_dir.exists()
+    try:
+        result = train(scene, cfg, run_dir, device=device, resume=args.resume,
+                       progress=not args.quiet, stop_at=args.stop_at, callbacks=callbacks)
+    except BudgetTooShort as exc:
+        if fresh:  # made by this command, holding no checkpoint: nothing of the user's
+            shutil.rmtree(run_dir, ignore_errors=True)
+        raise NeusL0Error(exc.line(given, asked - cfg.train.budget)) from None
     return report(args, run_dir, result, asked)
 
 
 def report(args: argparse.Namespace, run_dir, result, asked: float) -> int:
     """Print how the run ended (and how much of its budget it took); the exit status."""
-    import sys
-
     from neus_l0.train.run_config import process_seconds, run_files
 
     if result.signal:

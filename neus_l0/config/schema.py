@@ -27,6 +27,7 @@ PadMode = Literal["absolute", "relative", "none"]
 PAD_MODES: tuple[str, ...] = get_args(PadMode)
 #: Where section weights are placed as point weights (see `section_to_point_weights`).
 Placement = Literal["midpoint", "endpoint"]
+ErrorSignal = Literal["colour", "depth"]
 PLACEMENTS: tuple[str, ...] = get_args(Placement)
 #: Where the L0 samplers' section shares come from (see `L0Sampler`).
 Masses = Literal["interpolant", "sections"]
@@ -358,6 +359,11 @@ class ErrorMapConfig:
     tile: int = 8
     """Side of the map's tiles in pixels (1: a tile per pixel); every pool pixel of a tile
     takes the tile's error."""
+    signal: ErrorSignal = "colour"
+    """What a ray writes into the map: ``colour`` (its colour L1 inside the mask, plus
+    |opacity - mask| with masks) or ``depth`` (how far its rendered surface lies behind the
+    ray's entry into the visual hull, in the unit sphere's units: a pit's floor, a rod
+    inside a cavity; 0 outside the mask)."""
 
 
 @dataclass

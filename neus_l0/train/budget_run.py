@@ -55,6 +55,27 @@ def describe_setting(run: RunState) -> str:
             f"samples, {sdf}, SDF MLP {c.model.sdf.layers}x{c.model.sdf.hidden}")
 
 
+class BudgetTooShort(NeusL0Error):
+    """The budget does not leave room for `neus_l0.train.budget.MIN_ITERS` steps.
+
+    Attributes:
+        spent_s: what start-up and compile took (seconds, counted from the budget's start
+            handed to `train`); step_s: a step's measured seconds; need_s: the least budget
+            (from that same start) that would have trained.
+    """
+
+    def __init__(self, spent_s: float, step_s: float, need_s: float) -> None:
+        self.spent_s, self.step_s, self.need_s = spent_s, step_s, need_s
+        super().__init__(self.line("train.budget", 0.0))
+
+    def line(self, given: str, before_s: float) -> str:
+        """One line naming the budget as the user gave it (`given`), with `before_s`
+        seconds spent before `train` started added to the times."""
+        return (f"{given}: too short: start-up and compile took "
+                f"{before_s + self.spent_s:.0f} s and a step {1000 * self.step_s:.0f} ms; give "
+                f"at least {before_s + self.need_s:.0f} s")
+
+
 def plan_run(run: RunState, started: float) -> BudgetKeeper:
     """Measure, plan and set the plan on `run` (its config, hash-grid level steps).
 
@@ -68,10 +89,8 @@ def plan_run(run: RunState, started: float) -> BudgetKeeper:
     costs = measure_costs(run, seconds=min(3.0, max(0.5, 0.01 * budget)))
     plan = plan_iterations(budget, time.monotonic() - started, costs, *event_counts(run.cfg))
     if plan.iters == 0:
-        need = plan.spent_s + plan.overhead_s + 50 * costs.step_s
-        raise NeusL0Error(f"train.budget={budget:g}: start-up and compile took "
-                          f"{plan.spent_s:.0f} s and a step {1000 * costs.step_s:.0f} ms; "
-                          f"give at least {need:.0f} s")
+        raise BudgetTooShort(plan.spent_s, costs.step_s,
+                             plan.spent_s + plan.overhead_s + 50 * costs.step_s)
     run.cfg = planned_config(run.cfg, plan.iters)
     enc = run.cfg.model.sdf.encoding
     grid = getattr(run.model.sdf, "encoding", None)

@@ -49,9 +49,25 @@ def weighted_color_l1(pred: Tensor, target: Tensor, mask: Tensor, weight: Tensor
     return (weight * per_ray).sum() / (pred.shape[0] * foreground)
 
 
-def ray_errors(out: RenderOutput, target_rgb: Tensor, mask: Tensor, use_mask: bool) -> Tensor:
-    """(B,) each ray's error for the error map: its colour L1 where the mask is on, plus
-    |opacity - mask| when the run uses masks (detached)."""
+def ray_errors(out: RenderOutput, target_rgb: Tensor, mask: Tensor, use_mask: bool,
+               signal: str = "colour", near: Tensor | None = None) -> Tensor:
+    """(B,) each ray's error for the error map (detached).
+
+    Args:
+        out: the rays' render; target_rgb: (B, 3); mask: (B, 1) in {0, 1}.
+        use_mask: the run uses masks (``colour`` adds |opacity - mask|).
+        signal: ``colour``: the colour L1 where the mask is on, plus |opacity - mask| with
+            masks; ``depth``: ``max(0, depth - near)`` where the mask is on (times the
+            opacity without masks), how deep behind its entry into the hull the ray's
+            surface lies.
+        near: (B,) where each ray enters the static bounds (the hull); None: its first
+            sample, ``out.t[:, 0]``.
+    """
+    if signal == "depth":
+        start = out.t[:, 0] if near is None else near
+        err = (out.depth[:, 0] - start).clamp_min(0.0)
+        err = err * (mask[:, 0] if use_mask else out.weight_sum[:, 0])
+        return err.detach()
     err = (out.color - target_rgb).abs().sum(-1) * mask[:, 0]
     if use_mask:
         err = err + (out.weight_sum[:, 0] - mask[:, 0]).abs()

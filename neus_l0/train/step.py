@@ -215,7 +215,9 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: 
     samples = out.active.sum() * out.t.shape[1]
     values = [losses[k] for k in LOSS_NAMES] + [out.inv_s, samples]  # () each, METRIC_NAMES
     errors = (None if inputs.ray_weight is None else
-              ray_errors(out, inputs.rgb, inputs.mask, cfg.train.mask_weight > 0))
+              ray_errors(out, inputs.rgb, inputs.mask, cfg.train.mask_weight > 0,
+                         cfg.train.error_map.signal,
+                         None if inputs.span is None else inputs.span[:, 0]))
     return losses["loss"], torch.stack(values).detach().float(), errors  # stack: the count
 
 

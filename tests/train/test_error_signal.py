@@ -1,0 +1,76 @@
+"""The error map's ``depth`` signal: how deep behind its hull entry a ray's surface lies."""
+
+import types
+
+import pytest
+import torch
+
+from neus_l0.config.load import load_config
+from neus_l0.errors import ConfigError
+from neus_l0.render.volume import render_rays
+from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.losses import ray_errors
+
+
+def _out(depth, weight_sum, t0):
+    return types.SimpleNamespace(depth=torch.tensor(depth)[:, None],
+                                 weight_sum=torch.tensor(weight_sum)[:, None],
+                                 t=torch.stack([torch.tensor(t0), torch.tensor(t0) + 1], -1),
+                                 color=torch.zeros(len(depth), 3))
+
+
+def test_depth_signal_closed_form():
+    out = _out([0.9, 0.3, 0.7, 0.5], [1.0, 1.0, 0.5, 0.0], [0.1, 0.2, 0.3, 0.4])
+    mask = torch.tensor([[1.0], [1.0], [0.0], [1.0]])
+    near = torch.tensor([0.5, 0.4, 0.2, 0.1])
+    rgb = torch.zeros(4, 3)
+    got = ray_errors(out, rgb, mask, True, "depth", near)
+    assert got.tolist() == pytest.approx([0.4, 0.0, 0.0, 0.4])  # behind; in front; off mask
+    # without a hull the first sample is the entry; without masks the opacity weighs it
+    assert ray_errors(out, rgb, mask, True, "depth").tolist() == pytest.approx(
+        [0.8, 0.1, 0.0, 0.1])
+    assert ray_errors(out, rgb, mask, False, "depth", near).tolist() == pytest.approx(
+        [0.4, 0.0, 0.25, 0.0])
+    assert not ray_errors(out, rgb, mask, True, "depth", near).requires_grad
+
+
+def test_colour_signal_unchanged_by_default():
+    out = _out([0.5, 0.5], [0.25, 1.0], [0.0, 0.0])
+    out.color = torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    mask = torch.tensor([[1.0], [0.0]])
+    got = ray_errors(out, torch.zeros(2, 3), mask, True)
+    assert got.tolist() == pytest.approx([0.5 + 0.75, 1.0])
+
+
+def test_config_choice():
+    assert load_config("demo").train.error_map.signal == "colour"
+    assert load_config("demo", ["train.error_map.signal=depth"]).train.error_map.signal == "depth"
+    with pytest.raises(ConfigError, match="signal"):
+        load_config("demo", ["train.error_map.signal=normal"])
+
+
+def test_rays_into_a_pit_score_its_depth_and_open_rays_nothing(analytic_sphere, sphere_model):
+    """A ball of radius 0.5 with a pit (radius 0.15, floor at z = 0.1) rendered straight down:
+    rays into the pit score the floor's depth behind the ball's top (0.4), rays that meet the
+    open surface score about 0 (the ball is its own hull here)."""
+
+    class Pitted(analytic_sphere):
+        def forward(self, x):
+            d = super().forward(x)
+            r = x[:, :2].norm(dim=-1, keepdim=True)
+            pit = torch.maximum(r - 0.15, 0.1 - x[:, 2:3])  # inside < 0
+            return torch.cat([torch.maximum(d[:, :1], -pit), d[:, 1:]], -1)
+
+    model = sphere_model(s_init=0.8)
+    model.sdf = Pitted()
+    cfg = load_config("demo", ["render.n_samples=64", "render.n_importance=64"])
+    xy = torch.tensor([[0.0, 0.0], [0.05, -0.04], [0.3, 0.0], [-0.25, 0.2]])
+    origins = torch.cat([xy, torch.full((4, 1), 0.95)], -1)
+    dirs = torch.tensor([[0.0, 0.0, -1.0]]).expand(4, 3)
+    with torch.no_grad():
+        out = render_rays(model, origins, dirs, cfg.render, build_sampler(cfg.sampler),
+                          cos_anneal_ratio=1.0, create_graph=False)
+    top = 0.95 - (0.25 - (xy ** 2).sum(-1)).sqrt()  # entry into the ball
+    err = ray_errors(out, torch.zeros(4, 3), torch.ones(4, 1), True, "depth", top)
+    assert err[:2].tolist() == pytest.approx((0.85 - top[:2]).tolist(), abs=0.02)
+    assert err[2:].max() < 0.02
