@@ -204,8 +204,10 @@ def choose_compile(cfg: Config, device: str, start_iteration: int = 0,
         expected = WARM_COMPILE_S[kind]
         if entry.get("compiles", 0) > 1:  # its last compile was itself a warm one
             expected = max(1.0, float(entry.get("seconds", expected)))
-    if cfg.train.budget > 0:  # a cache miss must not eat a budget: count a cold compile
-        expected = max(expected, COLD_COMPILE_S[kind])
+    # A budget run plans its iterations after the compile, from the time it took: a warm
+    # cache that missed costs iterations, never the budget, so a budget counts the warm
+    # compile as any run does (counting a cold one left 60 s budgets eager at twice the
+    # step time, docs/BENCHMARKS.md "What does a --budget buy").
     return CompileChoice(compile=saving > expected, eager_step_s=step, saving_s=saving,
                          compile_s=expected, warm=warm, measured=measured is not None)
 

@@ -67,3 +67,16 @@ def test_a_budget_counts_a_cold_compile(record_home):
     cfg = load_config("demo", ["train.budget=60"])
     choice = choose_compile(cfg, "cpu", eager_s=0.08)
     assert choice.compile_s >= 45.0 and not choice.compile  # 60 s x 0.55 < 45 s
+
+
+def test_a_budget_compiles_on_a_warm_cache(record_home):
+    """The plan is made after the compile, so a warm cache's compile is counted as such: a
+    60 s budget compiles (it stayed eager when a cold compile was counted)."""
+    from neus_l0.train.compile_auto import as_compiled, compile_record_path, note_compile, step_key
+
+    cfg = load_config("demo", ["train.budget=60"])
+    key = step_key(as_compiled(cfg), "cpu")
+    note_compile(key, 23.0, compile_record_path())
+    note_compile(key, 5.8, compile_record_path())
+    choice = choose_compile(cfg, "cpu", record=read_record(), eager_s=0.025)
+    assert choice.warm and choice.compile_s == 5.8 and choice.compile  # 60 x 0.55 = 33 > 5.8
