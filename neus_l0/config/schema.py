@@ -130,6 +130,10 @@ class ColorConfig:
     """Encoding of the view direction."""
     weight_norm: bool = True
     """Weight normalisation on every linear layer."""
+    view_warmup: float = 0.0
+    """Fraction of the schedule (``train.iters``) over which the view direction's encoding
+    fades in, linearly from 0 (a colour that cannot vary with the view, so that it cannot
+    fake geometry with shading) to 1; 0: the whole encoding from the start (NeuS)."""
 
 
 @dataclass

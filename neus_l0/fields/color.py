@@ -28,16 +28,21 @@ class ColorNetwork(nn.Module):
             lin = nn.Linear(dims[i], dims[i + 1])
             layers.append(weight_norm(lin) if cfg.weight_norm else lin)
         self.layers = nn.ModuleList(layers)
+        # the view encoding's weight (`ColorConfig.view_warmup`; the step sets it): a
+        # tensor, so that a compiled step reads its value instead of guarding on it
+        self.register_buffer("view_scale", torch.ones(()), persistent=False)
 
     def forward(self, points: Tensor, normals: Tensor, view_dirs: Tensor,
                 features: Tensor) -> Tensor:
         """points, normals, view_dirs (N, 3), features (N, F) -> rgb (N, 3)."""
         if self.mode == "idr":
-            h = torch.cat([points, self.view_encoding(view_dirs), normals, features], dim=-1)
+            views = self.view_encoding(view_dirs) * self.view_scale
+            h = torch.cat([points, views, normals, features], dim=-1)
         elif self.mode == "no_view_dir":
             h = torch.cat([points, normals, features], dim=-1)
         else:
-            h = torch.cat([points, self.view_encoding(view_dirs), features], dim=-1)
+            h = torch.cat([points, self.view_encoding(view_dirs) * self.view_scale, features],
+                          dim=-1)
         last = len(self.layers) - 1
         for i, lin in enumerate(self.layers):
             h = lin(h)

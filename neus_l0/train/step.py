@@ -253,6 +253,19 @@ def set_level_steps(model: NeuSModel, steps: int) -> None:
 
 
 
+def view_scale(cfg: Config, at: float) -> float:
+    """The view encoding's weight at schedule iteration `at`: ``at / (f * iters)`` up to 1,
+    f the config's ``model.color.view_warmup`` (1 when it is 0)."""
+    span = cfg.model.color.view_warmup * cfg.train.iters
+    return 1.0 if span <= 0 else min(1.0, max(0.0, at / span))
+
+
+def set_view_scale(model: NeuSModel, cfg: Config, at: float) -> None:
+    """Set the colour network's view-encoding weight (`view_scale`) for iteration `at`."""
+    if cfg.model.color.view_warmup > 0:
+        model.color.view_scale.fill_(view_scale(cfg, at))
+
+
 def _schedule_position(model: NeuSModel, optimizer: torch.optim.Optimizer, cfg: Config,
                        iteration: int, setup: StepSetup) -> float:
     """Where the step stands on the schedule (the real iteration, unless a budget compressed
@@ -263,6 +276,7 @@ def _schedule_position(model: NeuSModel, optimizer: torch.optim.Optimizer, cfg: 
         at = setup.warp.at(iteration)
         set_level_steps(model, int(at))
     set_learning_rate(optimizer, cfg, at)
+    set_view_scale(model, cfg, at)
     emap = setup.pool.error_map if setup.pool is not None else None
     if emap is not None and iteration % cfg.train.log_every == 0:
         refresh_table(emap)  # the draw table follows the map at log steps

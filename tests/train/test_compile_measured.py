@@ -72,7 +72,8 @@ def test_a_budget_counts_a_cold_compile(record_home):
 def test_a_budget_compiles_on_a_warm_cache(record_home):
     """The plan is made after the compile, so a warm cache's compile is counted as such: a
     60 s budget compiles (it stayed eager when a cold compile was counted)."""
-    from neus_l0.train.compile_auto import as_compiled, compile_record_path, note_compile, step_key
+    from neus_l0.train.cache_folder import compile_record_path
+    from neus_l0.train.compile_auto import as_compiled, note_compile, step_key
 
     cfg = load_config("demo", ["train.budget=60"])
     key = step_key(as_compiled(cfg), "cpu")
