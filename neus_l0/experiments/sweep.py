@@ -131,6 +131,19 @@ def _dotted_diff(a, b, prefix: str = "") -> list[str]:
     return out
 
 
+def _with_defaults(config):
+    """A recorded config with the keys a later version added at their defaults (so that a
+    sweep made before a new option existed still matches, unless the option is set)."""
+    if not isinstance(config, dict):
+        return config
+    from neus_l0.config.load import config_from_dict, to_dict
+
+    try:
+        return to_dict(config_from_dict(config))
+    except NeusL0Error:
+        return config  # a config this version cannot read: compared as recorded
+
+
 def check_settings(out_dir: Path, settings: dict) -> None:
     """Write ``DIR/sweep.json``, or check that an existing one has the same settings.
 
@@ -141,7 +154,8 @@ def check_settings(out_dir: Path, settings: dict) -> None:
     if path.is_file():
         old = json.loads(path.read_text(encoding="utf-8"))
         differ = [k for k in SHARED_KEYS if k != "config" and old.get(k) != settings.get(k)]
-        differ += [f"config {k}" for k in _dotted_diff(old.get("config"), settings["config"])]
+        differ += [f"config {k}" for k in _dotted_diff(_with_defaults(old.get("config")),
+                                                      settings["config"])]
         if differ:
             raise NeusL0Error(f"{path}: this sweep folder was made with other settings "
                               f"({', '.join(differ)}); use another --out so that its runs "
