@@ -30,7 +30,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                     "DIR/results.csv and DIR/results.json, plots to DIR/plots/; re-running "
                     "skips finished runs.")
     p.add_argument("--scenes", type=_list(str), metavar="A,B",
-                   help="built-in scene names (demo, pits-and-thin, pits-deep; synthesised "
+                   help="built-in scene names (demo, pits-and-thin, pits-deep, cup; synthesised "
                         "into DIR/scenes/) or scene folders")
     p.add_argument("--samplers", type=_list(str), default=["hvs", "l0"], metavar="A,B",
                    help="samplers (default hvs,l0)")

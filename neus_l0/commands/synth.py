@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-BUILTINS = ("demo", "pits-and-thin", "pits-deep")
+BUILTINS = ("demo", "pits-and-thin", "pits-deep", "cup")
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:

@@ -111,6 +111,23 @@ class Capsule:
 
 
 @dataclasses.dataclass(frozen=True)
+class Torus:
+    """Ring around `center` whose axis is the world axis `axis` (0: x, 1: y, 2: z): the
+    circle of radius `major` in the plane across the axis, swept by a ball of `minor`."""
+
+    center: tuple[float, float, float]
+    axis: int
+    major: float
+    minor: float
+
+    def __call__(self, x: Tensor) -> Tensor:
+        p = x - _vec(self.center, x)
+        across = [i for i in range(3) if i != self.axis]
+        ring = p[:, across].norm(dim=-1) - self.major
+        return torch.stack([ring, p[:, self.axis]], -1).norm(dim=-1) - self.minor
+
+
+@dataclasses.dataclass(frozen=True)
 class Union:
     """Union of shapes (pointwise min)."""
 
@@ -280,10 +297,51 @@ def pits_and_thin_shape(deep_pit: bool = False) -> BuiltinShape:
                         + deep)
 
 
+#: The cup's cavity: radius and depth (as deep as it is wide), and the rods on its floor:
+#: (x, y) offsets from the axis, radius, height.
+CUP_CAVITY = (26.0, 52.0)
+CUP_RODS = (((0.0, 13.0), 3.0, 36.0), ((-12.0, -7.0), 4.0, 36.0), ((12.0, -7.0), 6.0, 36.0))
+
+
+def cup_shape() -> BuiltinShape:
+    """A held-out object for the pits issue (#35; no setting was tuned on it): a thick-walled
+    cup with a cavity as deep as it is wide, three thin rods standing on the cavity's floor
+    below the rim, a thin handle (a torus) and four dimples on its side."""
+    outer_r, height, base = 60.0, 90.0, -45.0
+    top = base + height
+    body = CappedCone((0.0, 0.0, base), (0.0, 0.0, top), outer_r, outer_r)
+    r, depth = CUP_CAVITY
+    cavity, feat = _pit(0.0, 0.0, top, r, depth, name=f"cavity r{r:g} d{depth:g}")
+    feat["radius"] = float(np.hypot(r, depth / 2))
+    feats = [feat, {"kind": "pit", "name": "cavity floor", "center": [0.0, 0.0, top - depth],
+                    "radius": 7.0, "axis": [0.0, 0.0, 1.0]}]
+    dimples = []
+    for k, z in enumerate((-20.0, 10.0)):
+        for ang in (0.5 * np.pi + 0.6 * k, 1.3 * np.pi - 0.4 * k):
+            c = (outer_r * float(np.cos(ang)), outer_r * float(np.sin(ang)), z)
+            dimples.append(Sphere(c, 9.0))
+            feats.append({"kind": "pit", "name": f"dimple {len(dimples)}", "center": list(c),
+                          "radius": 9.0, "axis": None})
+    parts = [Difference(body, (cavity, *dimples))]
+    for (dx, dy), rr, h in CUP_RODS:
+        rod, f = _rod(dx, dy, top - depth, h, rr, name=f"cavity rod r{rr:g}")
+        parts.append(rod)
+        feats.append(f)
+    handle = Torus((outer_r + 18.0, 0.0, 0.0), 1, 26.0, 5.0)
+    parts.append(handle)
+    feats.append({"kind": "thin", "name": "handle r5", "center": [outer_r + 24.0, 0.0, 0.0],
+                  "radius": 27.0, "axis": None})
+    return BuiltinShape("cup", Union(tuple(parts)), feats,
+                        ((-62.0, -62.0, -47.0), (115.0, 62.0, 47.0)),
+                        "cup r 60, 90 tall, with a cavity r 26 depth 52, rods r 3/4/6 (36 tall) "
+                        "on its floor, a handle (torus tube r 5) and 4 dimples r 9")
+
+
 BUILTIN_SHAPES: dict[str, Callable[[], BuiltinShape]] = {
     "demo": demo_shape,
     "pits-and-thin": pits_and_thin_shape,
     "pits-deep": functools.partial(pits_and_thin_shape, deep_pit=True),
+    "cup": cup_shape,
 }
 
 
