@@ -24,6 +24,11 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help=f"training config (default {_CONF}: the CPU-sized hash-grid setting)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads (default: free cores, from the load average)")
+    p.add_argument("--budget", default=None, metavar="TIME",
+                   help="time for training (90s, 4m, 1h; train.budget): the iterations are "
+                        "planned from the step rate measured after the compile and the "
+                        "schedule finishes; the scene, mesh and score come on top (default: "
+                        "the config's 3500 iterations)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     accept_overrides(p)
     return p
@@ -47,13 +52,16 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from neus_l0.commands._paths import check_output_dir
+    from neus_l0.config.duration import parse_seconds
     from neus_l0.pipelines.demo import DEMO_NAMES, DEMO_RECORDS, DemoOptions, run_demo
 
     check_numbers(args)
+    budget = parse_seconds(args.budget, "--budget", allow_zero=False) if args.budget else 0.0
     out = check_output_dir(args.out, "--out", DEMO_RECORDS, DEMO_NAMES, "a demo folder")
     result = run_demo(DemoOptions(out=out, conf=args.conf, overrides=list(args.overrides),
                                   device=args.device, threads=args.threads,
-                                  resolution=args.resolution, quiet=args.quiet))
+                                  resolution=args.resolution, quiet=args.quiet,
+                                  budget=budget))
     if result.signal:
         print(f"neus-l0 demo: stopped by {result.signal} at iteration {result.iteration}; "
               f"checkpoint {result.checkpoint} written; run the same command again to "

@@ -43,11 +43,10 @@ class DemoOptions:
     threads: int | None = None
     resolution: int = DEMO_RESOLUTION
     quiet: bool = False
-
-
-#: A demo folder's records (any one makes a folder the demo's) and what it writes at its top.
-DEMO_RECORDS = ("metrics.json", "scene/scene.json", "run/run.json", "run/checkpoints/ckpt_*.pt")
-DEMO_NAMES = ("scene", "run", "mesh.ply", "metrics.json", "comparison.png")
+    budget: float = 0.0
+    """Seconds for the training stage (``train.budget``: compile, steps and the final
+    checkpoint; the iterations planned from the measured step rate); 0: the config's
+    iterations, cut at `DEMO_BUDGET_S` for the whole demo."""
 
 
 @dataclasses.dataclass
@@ -99,7 +98,7 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     from neus_l0.config.load import load_config
     from neus_l0.device import free_cpu_threads, pick_device
 
-    cfg = load_config(opts.conf, opts.overrides)  # a bad config fails before any work
+    cfg = load_config(opts.conf, _ladder(opts) + opts.overrides)  # fails before any work
     device = pick_device(opts.device)
     opts.out.mkdir(parents=True, exist_ok=True)
     threads = free_cpu_threads(opts.threads)
@@ -114,7 +113,9 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     timings["scene_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
-    if not any(o.startswith("train.max_seconds=") for o in opts.overrides):
+    if opts.budget > 0:
+        cfg.train.budget, cfg.train.max_seconds = opts.budget, 0.0
+    elif not any(o.startswith("train.max_seconds=") for o in opts.overrides):
         left = DEMO_BUDGET_S - (time.monotonic() - t_all) - DEMO_RESERVE_S
         cfg.train.max_seconds = max(30.0, left)
     trained = _train_demo(opts, cfg, paths["scene"], paths["run"], device, threads)
@@ -139,6 +140,16 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     }
     atomic_write_json(paths["metrics"], metrics)
     return dataclasses.replace(result, metrics=metrics, iteration=trained.iteration)
+
+
+def _ladder(opts: DemoOptions) -> list[str]:
+    """The CPU capacity ladder's overrides for a budget on the demo's own config
+    (`neus_l0.train.budget.LADDER`), before the user's."""
+    from neus_l0.train.budget import default_setting
+
+    if opts.budget <= 0 or str(opts.conf) != DEMO_CONF:
+        return []
+    return list(default_setting("cpu", opts.budget)[1])
 
 
 def _make_demo_scene(scene_dir: Path, quiet: bool) -> None:
@@ -187,14 +198,19 @@ def _train_demo(opts: DemoOptions, cfg, scene_dir: Path, run_dir: Path, device: 
     scene = load_scene(scene_dir, downscale=cfg.data.downscale, device=device)
     newest = latest_checkpoint(run_dir)
     resume = newest is not None
+    if resume and cfg.train.budget > 0 and (run_dir / "config.yaml").is_file():
+        from neus_l0.config.load import load_config
+
+        cfg = load_config(run_dir / "config.yaml")  # the plan it recorded, not a new one
     cfg, line = resolve_compile(cfg, device, checkpoint_iteration(newest) if resume else 0,
                                 run_dir)
     if line:
         print(f"neus-l0: {line}", file=sys.stderr, flush=True)
     if resume:
         check_same_settings(run_dir, cfg)
-    print(f"[2/4] training ({cfg.train.iters} iterations at most, "
-          f"{cfg.train.max_seconds:.0f} s budget, sampler {cfg.sampler.name}, {threads} "
+    length = (f"iterations planned for a {cfg.train.budget:.0f} s budget" if cfg.train.budget
+              else f"{cfg.train.iters} iterations at most, {cfg.train.max_seconds:.0f} s budget")
+    print(f"[2/4] training ({length}, sampler {cfg.sampler.name}, {threads} "
           f"thread{'s' if threads > 1 else ''}, {'compiled' if cfg.train.compile else 'eager'})"
           f" into {run_dir}{' (resuming)' if resume else ''} ...", flush=True)
     return train(scene, cfg, run_dir, device=device, resume=resume, progress=not opts.quiet)

@@ -1,0 +1,38 @@
+"""`neus-l0 demo --budget`: the training stage is a planned budget run, recorded so that a
+re-run reuses it instead of planning again."""
+
+import json
+
+import pytest
+
+from neus_l0.cli import main
+from neus_l0.config.load import load_config
+
+
+def test_the_demo_trains_a_planned_budget_and_a_rerun_reuses_it(small, monkeypatch, tmp_path,
+                                                                 capsys):
+    import neus_l0.pipelines.demo as demo
+
+    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
+    out = tmp_path / "demo"
+    argv = ["demo", "--out", str(out), "--quiet", "--resolution", "40", "--budget", "20s",
+            "--threads", "1",
+            *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
+            "train.val_every=0", "train.compile=false"]
+    assert main(argv) == 0
+    plan = json.loads((out / "run" / "budget.json").read_text())
+    recorded = load_config(out / "run" / "config.yaml")
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert recorded.train.budget == 0 and recorded.train.iters == plan["planned_iters"]
+    assert metrics["iterations"] == plan["done_iters"] > 20
+    assert plan["steps_end_s"] <= 20.0
+    assert "planned for a 20 s budget" in capsys.readouterr().out
+    assert main(argv) == 0  # the finished plan is reused, not re-planned
+    again = json.loads((out / "metrics.json").read_text())
+    assert again["iterations"] == metrics["iterations"]
+
+
+@pytest.mark.parametrize("bad", ["0", "-5", "abc", "1e9"])
+def test_bad_demo_budgets_get_one_line(bad, refused, tmp_path):
+    refused(["demo", "--out", str(tmp_path / "d"), f"--budget={bad}"], "--budget", alone=True)
+    assert not (tmp_path / "d").exists()
