@@ -189,7 +189,8 @@ class _RaysWhereTheMapDraws(TrainingCallback):
 def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float, fraction: float,
                   tile: int = 8, signal: str = "colour") -> list[dict]:
     """Train config `conf` with ``train.error_map.fraction`` for `seconds` (one thread, eager)
-    and return the rays a step draws per label at each log step (the table rebuilt there)."""
+    and return the rays a step draws per label at each log step (under the table the draw
+    uses then: `refresh_interval`)."""
     cfg = load_config(conf, [f"train.error_map.fraction={fraction}",
                              f"train.error_map.tile={tile}",
                              f"train.error_map.signal={signal}",

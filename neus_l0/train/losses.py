@@ -59,15 +59,20 @@ def ray_errors(out: RenderOutput, target_rgb: Tensor, mask: Tensor, use_mask: bo
         signal: ``colour``: the colour L1 where the mask is on, plus |opacity - mask| with
             masks; ``depth``: ``max(0, depth - near)`` where the mask is on (times the
             opacity without masks), how deep behind its entry into the hull the ray's
-            surface lies.
+            surface lies; rays off the mask take the batch's mean over the rays on it, so
+            that the map moves rays within the object and leaves the rays that carve the
+            hull's slack (off the mask) their uniform share.
         near: (B,) where each ray enters the static bounds (the hull); None: its first
             sample, ``out.t[:, 0]``.
     """
     if signal == "depth":
         start = out.t[:, 0] if near is None else near
         err = (out.depth[:, 0] - start).clamp_min(0.0)
-        err = err * (mask[:, 0] if use_mask else out.weight_sum[:, 0])
-        return err.detach()
+        if not use_mask:
+            return (err * out.weight_sum[:, 0]).detach()
+        on = mask[:, 0]
+        mean_on = (err * on).sum() / on.sum().clamp_min(1.0)
+        return torch.where(on > 0.5, err, mean_on).detach()
     err = (out.color - target_rgb).abs().sum(-1) * mask[:, 0]
     if use_mask:
         err = err + (out.weight_sum[:, 0] - mask[:, 0]).abs()

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from neus_l0.bounds.error_map import draw, refresh_table, update_errors
+from neus_l0.bounds.error_map import draw, refresh_interval, refresh_table, update_errors
 from neus_l0.bounds.occupancy import OccupancyGrid
 from neus_l0.bounds.pixel_pool import PixelPool
 from neus_l0.bounds.spans import RayBounds, join_bounds
@@ -278,8 +278,9 @@ def _schedule_position(model: NeuSModel, optimizer: torch.optim.Optimizer, cfg: 
     set_learning_rate(optimizer, cfg, at)
     set_view_scale(model, cfg, at)
     emap = setup.pool.error_map if setup.pool is not None else None
-    if emap is not None and iteration % cfg.train.log_every == 0:
-        refresh_table(emap)  # the draw table follows the map at log steps
+    if emap is not None and iteration % refresh_interval(emap.prob.numel(),
+                                                         cfg.train.log_every) == 0:
+        refresh_table(emap)  # the draw table follows the map
     return at
 
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,

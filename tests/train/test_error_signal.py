@@ -25,10 +25,11 @@ def test_depth_signal_closed_form():
     near = torch.tensor([0.5, 0.4, 0.2, 0.1])
     rgb = torch.zeros(4, 3)
     got = ray_errors(out, rgb, mask, True, "depth", near)
-    assert got.tolist() == pytest.approx([0.4, 0.0, 0.0, 0.4])  # behind; in front; off mask
+    # behind the entry; in front of it (0); off the mask: the mean of the rays on it
+    assert got.tolist() == pytest.approx([0.4, 0.0, 0.8 / 3, 0.4])
     # without a hull the first sample is the entry; without masks the opacity weighs it
     assert ray_errors(out, rgb, mask, True, "depth").tolist() == pytest.approx(
-        [0.8, 0.1, 0.0, 0.1])
+        [0.8, 0.1, 1.0 / 3, 0.1])
     assert ray_errors(out, rgb, mask, False, "depth", near).tolist() == pytest.approx(
         [0.4, 0.0, 0.25, 0.0])
     assert not ray_errors(out, rgb, mask, True, "depth", near).requires_grad
@@ -74,3 +75,34 @@ def test_rays_into_a_pit_score_its_depth_and_open_rays_nothing(analytic_sphere, 
     err = ray_errors(out, torch.zeros(4, 3), torch.ones(4, 1), True, "depth", top)
     assert err[:2].tolist() == pytest.approx((0.85 - top[:2]).tolist(), abs=0.02)
     assert err[2:].max() < 0.02
+
+
+def test_rays_off_the_mask_keep_their_uniform_share_on_average():
+    """Over a pool where a fifth of the pixels are off the mask, a map fed with the depth
+    signal gives them a fifth of its mass (in expectation over batches), so the rays that
+    carve the hull's slack are not starved."""
+    from neus_l0.bounds.error_map import draw_probabilities
+
+    g = torch.Generator().manual_seed(0)
+    n = 5000
+    on = (torch.rand(n, generator=g) > 0.2).float()
+    deep = torch.rand(n, generator=g) ** 3  # a few deep pixels
+    signal = torch.zeros(n)
+    for start in range(0, n, 100):  # batches of 100 rays, each pixel once
+        sl = slice(start, start + 100)
+        out = _out(deep[sl].tolist(), [1.0] * 100, [0.0] * 100)
+        signal[sl] = ray_errors(out, torch.zeros(100, 3), on[sl, None], True, "depth",
+                                torch.zeros(100))
+    p = draw_probabilities(signal, 1.0)
+    off_share = float(p[on == 0].sum())
+    assert off_share == pytest.approx(float((on == 0).float().mean()), abs=0.02)
+    deep_on = (on == 1) & (deep > 0.5)
+    assert float(p[deep_on].sum()) > 2 * float(deep_on.float().mean())
+
+
+def test_a_large_pool_refreshes_its_table_less_often():
+    from neus_l0.bounds.error_map import PIXELS_PER_STEP, refresh_interval
+
+    assert refresh_interval(10_000, 50) == 50
+    assert refresh_interval(1_344_701, 50) == -(-1_344_701 // PIXELS_PER_STEP) == 337
+    assert refresh_interval(0, 0) == 1
