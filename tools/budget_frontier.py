@@ -2,14 +2,16 @@
 equal end-to-end time, median over seeds, per scene.
 
 Usage:
-    python tools/budget_frontier.py PLAN_DIR DEMO_DIR [--out DIR]
+    python tools/budget_frontier.py PLAN_DIR[,PLAN_DIR2] DEMO_DIR [--out DIR]
 
 PLAN_DIR is a `neus-l0 bench --plan` sweep (each budget a `train.budget`: the iterations
 planned from the measured step rate, the schedule finished); DEMO_DIR the same scenes and
 seeds without `--plan` (the `demo` config's 3500 iterations, cut by `train.max_seconds`
 where it runs longer). A run's end-to-end seconds are read from its folder: from the spec
 the sweep wrote before starting it to its final checkpoint (start-up, compile, steps and
-the checkpoint; not the mesh or the scoring).
+the checkpoint; not the mesh or the scoring). Several plan folders (comma-separated): an arm
+(scene, budget) of a later folder replaces the same arm of an earlier one (a re-run of one
+budget after a fix).
 
 Prints a markdown table (also DIR/frontier.md) and draws DIR/budget_frontier.png: per scene,
 the median Chamfer of the budget runs at each budget (bars: min and max over seeds) and the
@@ -85,9 +87,10 @@ def table(plan: dict, demo: dict) -> str:
              "| pits | thin | demo at equal time: arm, end to end, Chamfer | budget lower in |",
              "|---|---:|---:|---:|---:|---|---:|---:|---|---:|"]
     for (scene, budget), runs in sorted(plan.items()):
+        pit, thin = (f"{v:.2f}" if v == v else "-" for v in (median(runs, "pit"),
+                                                            median(runs, "thin")))
         row = (f"| {scene} | {budget:g} s | {len(runs)} | {median(runs, 'iterations'):.0f} | "
-               f"{median(runs, 'wall'):.1f} s | {_spread(runs)} | {median(runs, 'pit'):.2f} | "
-               f"{median(runs, 'thin'):.2f} |")
+               f"{median(runs, 'wall'):.1f} s | {_spread(runs)} | {pit} | {thin} |")
         found = demo_at(demo, scene, budget)
         if found is None:
             lines.append(row + " - | - |")
@@ -135,11 +138,14 @@ def plot(plan: dict, demo: dict, path: Path) -> Path:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("plan", type=Path, help="a `neus-l0 bench --plan` folder")
+    ap.add_argument("plan", help="`neus-l0 bench --plan` folders, comma-separated")
     ap.add_argument("demo", type=Path, help="the same sweep without --plan")
     ap.add_argument("--out", type=Path, default=None, help="folder for frontier.md and the plot")
     args = ap.parse_args()
-    plan, demo = arms(args.plan), arms(args.demo)
+    plan = {}
+    for folder in str(args.plan).split(","):
+        plan.update(arms(Path(folder)))
+    demo = arms(args.demo)
     text = table(plan, demo)
     print(text)
     if args.out:
