@@ -40,6 +40,11 @@ class Clock:
         """Seconds of training time so far."""
         return time.monotonic() - self.start - self._paused
 
+    @property
+    def paused_s(self) -> float:
+        """Seconds spent in `paused()` so far (measurement hooks, snapshots)."""
+        return self._paused
+
     @contextlib.contextmanager
     def paused(self) -> Iterator[None]:
         """Time spent inside does not count."""
