@@ -27,8 +27,9 @@ PadMode = Literal["absolute", "relative", "none"]
 PAD_MODES: tuple[str, ...] = get_args(PadMode)
 #: Where section weights are placed as point weights (see `section_to_point_weights`).
 Placement = Literal["midpoint", "endpoint"]
-ErrorSignal = Literal["colour", "depth"]
 PLACEMENTS: tuple[str, ...] = get_args(Placement)
+#: What a ray writes into the pool's error map (see `ErrorMapConfig.signal`).
+ErrorSignal = Literal["colour", "depth"]
 #: Where the L0 samplers' section shares come from (see `L0Sampler`).
 Masses = Literal["interpolant", "sections"]
 MASSES: tuple[str, ...] = get_args(Masses)
@@ -367,7 +368,8 @@ class ErrorMapConfig:
     """What a ray writes into the map: ``colour`` (its colour L1 inside the mask, plus
     |opacity - mask| with masks) or ``depth`` (how far its rendered surface lies behind the
     ray's entry into the visual hull, in the unit sphere's units: a pit's floor, a rod
-    inside a cavity; 0 outside the mask)."""
+    inside a cavity; a ray off the mask takes its batch's mean over the rays on it, so that
+    the map leaves the rays that carve the hull's slack their uniform share)."""
 
 
 @dataclass

@@ -200,16 +200,21 @@ def _train_demo(opts: DemoOptions, cfg, scene_dir: Path, run_dir: Path, device: 
     resume = newest is not None
     if resume and cfg.train.budget > 0 and (run_dir / "config.yaml").is_file():
         from neus_l0.config.load import load_config
+        from neus_l0.train.budget import planned_config
 
-        cfg = load_config(run_dir / "config.yaml")  # the plan it recorded, not a new one
+        recorded = load_config(run_dir / "config.yaml")  # the plan it recorded, not a new one
+        # the user's settings, planned as the run was, against the run's
+        check_same_settings(run_dir, planned_config(cfg, recorded.train.iters))
+        cfg = recorded
     cfg, line = resolve_compile(cfg, device, checkpoint_iteration(newest) if resume else 0,
                                 run_dir)
     if line:
         print(f"neus-l0: {line}", file=sys.stderr, flush=True)
     if resume:
         check_same_settings(run_dir, cfg)
+    cap = f", {cfg.train.max_seconds:.0f} s budget" if cfg.train.max_seconds else ""
     length = (f"iterations planned for a {cfg.train.budget:.0f} s budget" if cfg.train.budget
-              else f"{cfg.train.iters} iterations at most, {cfg.train.max_seconds:.0f} s budget")
+              else f"{cfg.train.iters} iterations at most{cap}")
     print(f"[2/4] training ({length}, sampler {cfg.sampler.name}, {threads} "
           f"thread{'s' if threads > 1 else ''}, {'compiled' if cfg.train.compile else 'eager'})"
           f" into {run_dir}{' (resuming)' if resume else ''} ...", flush=True)

@@ -30,6 +30,10 @@ def test_the_demo_trains_a_planned_budget_and_a_rerun_reuses_it(small, monkeypat
     assert main(argv) == 0  # the finished plan is reused, not re-planned
     again = json.loads((out / "metrics.json").read_text())
     assert again["iterations"] == metrics["iterations"]
+    capsys.readouterr()
+    # the recorded plan does not let another sampler through under the run's label
+    assert main([*argv, "sampler=hvs"]) == 2
+    assert "sampler" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("bad", ["0", "-5", "abc", "1e9"])
