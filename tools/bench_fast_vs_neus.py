@@ -120,7 +120,7 @@ def _check_args(args: argparse.Namespace) -> None:
 
 
 def build_specs(args: argparse.Namespace, out: Path) -> list[RunSpec]:
-    """One `RunSpec` per (scene, arm), fast arm then NeuS arm per scene."""
+    """One `RunSpec` per (scene, arm): per scene the fast arm, the budget arm if any, then NeuS."""
     from neus_l0.config.load import load_config, to_dict
 
     arm_cfg = {}
@@ -148,8 +148,8 @@ def build_specs(args: argparse.Namespace, out: Path) -> list[RunSpec]:
                 holdout=args.holdout, resolution=args.resolution,
                 eval_density=args.eval_density, sample_rays=args.sample_rays, config=config,
                 snapshots=snapshot_marks(budget, args.snapshots_per_run), label=arm))
-        if args.budget:
-            specs.append(_budget_spec(specs[-2], args.budget))
+        if args.budget:  # before the NeuS arm: the longest run goes last
+            specs.insert(len(specs) - 1, _budget_spec(specs[-2], args.budget))
     return specs
 
 
