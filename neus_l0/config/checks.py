@@ -117,6 +117,7 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "sample_budget"): at_least(0, "0: off"),
     (TrainConfig, "lr"): positive(),
     (TrainConfig, "lr_alpha"): Range(0, 1, note="the final fraction of the learning rate"),
+    (TrainConfig, "lr_decay_iters"): at_least(0, "0: train.iters"),
     (TrainConfig, "warm_up"): at_least(0),
     (TrainConfig, "anneal_end"): at_least(0),
     (TrainConfig, "igr_weight"): at_least(0),

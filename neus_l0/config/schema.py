@@ -392,6 +392,10 @@ class TrainConfig:
     """Peak learning rate of Adam."""
     lr_alpha: float = 0.05
     """Final learning rate as a fraction of `lr` (cosine decay)."""
+    lr_decay_iters: int = 0
+    """Length of the cosine decay in iterations (0: `iters`). Set longer than `iters`, the
+    run stops part-way down the curve: what a budget run does when its budget buys fewer
+    iterations than its config's own `iters` (`neus_l0.train.budget.planned_config`)."""
     warm_up: int = 5000
     """Iterations of linear learning-rate warm-up."""
     anneal_end: int = 0

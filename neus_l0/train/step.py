@@ -86,7 +86,7 @@ def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config,
                       iteration: float) -> float:
     """Apply NeuS's schedule for `iteration` and return the learning rate."""
     t = cfg.train
-    lr = t.lr * lr_factor(iteration, t.warm_up, t.iters, t.lr_alpha)
+    lr = t.lr * lr_factor(iteration, t.warm_up, t.lr_decay_iters or t.iters, t.lr_alpha)
     for group in optimizer.param_groups:
         group["lr"] = lr
     return lr
