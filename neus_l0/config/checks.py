@@ -132,6 +132,8 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "max_seconds"): at_least(0, "0: no time limit"),
     (TrainConfig, "threads"): at_least(0, "0: the free cores"),
     (TrainConfig, "eikonal_fraction"): Range(0, 1, lo_open=True),
+    (TrainConfig, "curvature_weight"): at_least(0, "0: off"),
+    (TrainConfig, "curvature_fraction"): Range(0, 1, lo_open=True),
     (ColorConfig, "view_warmup"): Range(0, 1),
     (ErrorMapConfig, "fraction"): Range(0, 1, hi_open=True),
     (ErrorMapConfig, "decay"): Range(0, 1, lo_open=True),

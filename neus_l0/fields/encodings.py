@@ -48,8 +48,8 @@ class IdentityEncoding(Encoding):
         super().__init__()
         self.in_dim = self.out_dim = self.raw_dims = in_dim
 
-    def forward(self, x: Tensor) -> Tensor:
-        """x (..., in_dim) -> (..., in_dim)."""
+    def forward(self, x: Tensor, count: bool = True) -> Tensor:
+        """x (..., in_dim) -> (..., in_dim) (`count`: see `HashGridEncoding.forward`)."""
         return x
 
     def forward_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor]:
@@ -74,8 +74,8 @@ class FrequencyEncoding(Encoding):
                              persistent=False)
         self.register_buffer("freq_col", self.freqs[:, None].clone(), persistent=False)  # (L,1)
 
-    def forward(self, x: Tensor) -> Tensor:
-        """x (..., in_dim) -> (..., out_dim)."""
+    def forward(self, x: Tensor, count: bool = True) -> Tensor:
+        """x (..., in_dim) -> (..., out_dim) (`count`: see `HashGridEncoding.forward`)."""
         parts = [x] if self.include_input else []
         if self.n_freqs:
             xf = x[..., None, :] * self.freq_col  # (..., L, in_dim)
@@ -295,13 +295,14 @@ class HashGridEncoding(Encoding):
         feats = _trilinear(v, frac)
         return feats * self.lr_scale if self.lr_scale != 1.0 else feats
 
-    def _level_weights(self, x: Tensor) -> Tensor | None:
+    def _level_weights(self, x: Tensor, count: bool = True) -> Tensor | None:
         """(L, 1) multipliers of the levels' features (lr_scale, 0 for inactive levels), or
-        None when all are 1; counts a training pass (see the class docstring)."""
+        None when all are 1; counts a training pass (see the class docstring) unless
+        `count` is False."""
         if self.start_level >= self.n_levels:
             return None if self.lr_scale == 1.0 else self.level_scale.to(x.dtype)
         w = self._active_weights(x.dtype)  # (L, 1)
-        if self.training and torch.is_grad_enabled():
+        if count and self.training and torch.is_grad_enabled():
             self.steps += 1
         return w
 
@@ -326,11 +327,13 @@ class HashGridEncoding(Encoding):
             parts.append(self.bands(x))
         return parts
 
-    def forward(self, x: Tensor) -> Tensor:
-        """x (N, 3) -> (N, out_dim)."""
+    def forward(self, x: Tensor, count: bool = True) -> Tensor:
+        """x (N, 3) -> (N, out_dim). `count`: whether a training pass counts towards the
+        levels' schedule (False for a second pass in the same step, e.g. the curvature
+        term's points)."""
         lead = x.shape[:-1]
         x = x.reshape(-1, 3) if x.dim() != 2 else x
-        weights = self._level_weights(x)
+        weights = self._level_weights(x, count)
         _, _, frac, v = self._corners(x)
         feats = _trilinear(v, frac)  # (N, L, F)
         if weights is not None:

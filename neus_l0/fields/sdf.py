@@ -73,9 +73,10 @@ class SDFNetwork(nn.Module):
         self.beta = cfg.softplus_beta
         self.activation = nn.Softplus(beta=cfg.softplus_beta)
 
-    def forward(self, x: Tensor) -> Tensor:
-        """x (N, 3) in the normalised frame -> (N, 1 + feature_dim): sdf then feature."""
-        inputs = self.encoding(x * self.scale if self.scale != 1.0 else x)
+    def forward(self, x: Tensor, count: bool = True) -> Tensor:
+        """x (N, 3) in the normalised frame -> (N, 1 + feature_dim): sdf then feature
+        (`count`: whether a training pass counts for the hash grid's level schedule)."""
+        inputs = self.encoding(x * self.scale if self.scale != 1.0 else x, count=count)
         h = inputs
         last = len(self.layers) - 1
         for i, lin in enumerate(self.layers):
@@ -156,6 +157,26 @@ class SDFNetwork(nn.Module):
         sdf = out[1:, :, 0]  # (6, N)
         grad = (sdf[:3] - sdf[3:]).t() / (2.0 * h)  # (N, 3)
         return out[0], grad
+
+    def laplacian(self, x: Tensor, step: Tensor | float | None = None) -> Tensor:
+        """The SDF's Laplacian by central differences, in one pass over 7 N points.
+
+        Args:
+            x: (N, 3) points (not differentiated through); step: h (None:
+                `finite_difference_step()`).
+
+        Returns:
+            (N,) ``(sum_j f(x + h e_j) + f(x - h e_j) - 6 f(x)) / h^2`` in the normalised frame
+            (the network's input x; exact for quadratics). The pass does not count for the
+            hash grid's level schedule (it is the step's second).
+        """
+        n = x.shape[0]
+        h = self.finite_difference_step() if step is None else step
+        eye = torch.eye(3, dtype=x.dtype, device=x.device)
+        taps = torch.cat([eye.new_zeros(1, 3), eye, -eye]) * h  # (7, 3)
+        f = self.forward((x.detach() + taps[:, None, :]).view(7 * n, 3), count=False)
+        f = f[:, 0].view(7, n)
+        return (f[1:].sum(0) - 6.0 * f[0]) / (h * h)
 
     def sdf(self, x: Tensor) -> Tensor:
         """x (N, 3) -> sdf (N, 1)."""

@@ -12,7 +12,7 @@ from torch import Tensor
 from neus_l0.config.schema import TrainConfig
 
 #: The names of what `neus_loss` returns, in the order the step reports them.
-LOSS_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "psnr")
+LOSS_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "curvature_loss", "psnr")
 
 if TYPE_CHECKING:
     from neus_l0.render.volume import RenderOutput
@@ -121,6 +121,18 @@ def eikonal(gradients: Tensor, mask: Tensor) -> Tensor:
     return (mask * eik).sum() / (mask.sum() + 1e-5)
 
 
+def curvature(laplacian: Tensor, mask: Tensor) -> Tensor:
+    """Neuralangelo's curvature term: the mean ``|Laplacian|`` over the points `mask` keeps.
+
+    Args:
+        laplacian: (k,) the SDF's Laplacian at k points; mask: (k,) in {0, 1}.
+
+    Returns:
+        () loss (0 when the mask is empty).
+    """
+    return (mask * laplacian.abs()).sum() / (mask.sum() + 1e-5)
+
+
 def eikonal_indices(n: int, fraction: float, generator: torch.Generator | None,
                     device: torch.device | str) -> Tensor:
     """The ``ceil(fraction * n)`` sample indices (with replacement) of `eikonal_subset`."""
@@ -132,8 +144,10 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
               generator: torch.Generator | None = None,
               mask_scale: float | Tensor = 1.0,
               eikonal_idx: Tensor | None = None, ray_weight: Tensor | None = None,
-              foreground: float = 1.0) -> dict[str, Tensor]:
-    """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE.
+              foreground: float = 1.0,
+              curvature_term: Tensor | None = None) -> dict[str, Tensor]:
+    """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE
+    (+ curvature_weight * curvature).
 
     Args:
         out: `neus_l0.render.volume.render_rays` output.
@@ -152,10 +166,12 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
             mask term the weighted mean of the rays' BCE, so both keep the pool's
             expectation; the Eikonal term (over samples) is not weighted. None: uniform.
         foreground: the pool's share of foreground pixels (with `ray_weight`).
+        curvature_term: () the `curvature` term computed by the caller (it needs the
+            network), added with ``cfg.curvature_weight``; None: 0.
 
     Returns:
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
-        ``psnr``.
+        ``curvature_loss``, ``psnr``.
     """
     if ray_weight is None:
         color = color_l1(out.color, target_rgb, mask)
@@ -171,11 +187,16 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
     else:
         mloss = torch.zeros_like(color)
     loss = color + cfg.igr_weight * eik + cfg.mask_weight * mask_scale * mloss
+    if curvature_term is not None:
+        loss = loss + cfg.curvature_weight * curvature_term
+    else:
+        curvature_term = torch.zeros_like(color)
     return {  # keys: LOSS_NAMES
         "loss": loss,
         "color_loss": color,
         "eikonal_loss": eik,
         "mask_loss": mloss,
+        "curvature_loss": curvature_term,
         "psnr": masked_psnr(out.color.detach(), target_rgb, mask),
     }
 

@@ -24,10 +24,16 @@ from neus_l0.data.rays import random_picks, random_rays, rays_at
 from neus_l0.data.scene import Scene
 from neus_l0.fields.linear import clear_weight_cache
 from neus_l0.fields.model import NeuSModel
-from neus_l0.render.volume import RenderNoise, draw_noise, render_rays
+from neus_l0.render.volume import RenderNoise, RenderOutput, draw_noise, render_rays
 from neus_l0.sampling.upsample import Sampler, build_sampler
 from neus_l0.train.budget import ScheduleWarp
-from neus_l0.train.losses import LOSS_NAMES, eikonal_indices, neus_loss, ray_errors
+from neus_l0.train.losses import (
+    LOSS_NAMES,
+    curvature,
+    eikonal_indices,
+    neus_loss,
+    ray_errors,
+)
 from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
 #: A step's metrics, in the order of `render_and_loss`'s metrics tensor: the losses, then
@@ -143,6 +149,7 @@ class StepInputs:
         pick: (B,) the rays' pool indices when the pool's error map drew them (None: off).
         ray_weight: (B,) their importance weights 1 / (P p) (None: uniform draws).
         foreground: the pool's share of foreground pixels (with `ray_weight`).
+        curvature_idx: (k,) the samples of the curvature term (None: the term is off).
     """
 
     origins: Tensor
@@ -157,6 +164,7 @@ class StepInputs:
     pick: Tensor | None = None
     ray_weight: Tensor | None = None
     foreground: float = 1.0
+    curvature_idx: Tensor | None = None
 
 
 def _draw_pool(pool: PixelPool, n_rays: int, generator: torch.Generator,
@@ -180,11 +188,14 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
         span = pool.spans[pick] if pool.spans is not None else None
     r = cfg.render
     noise = draw_noise(r, n_rays, generator, scene.device) if r.perturb else None
-    eik_idx = None
+    eik_idx = curv_idx = None
+    n_samples = n_rays * (r.n_samples + (r.n_importance if r.up_sample_steps else 0))
     if cfg.train.eikonal_fraction < 1.0:
-        n_samples = n_rays * (r.n_samples + (r.n_importance if r.up_sample_steps else 0))
         eik_idx = eikonal_indices(n_samples, cfg.train.eikonal_fraction, generator,
                                   scene.device)
+    if cfg.train.curvature_weight > 0:
+        curv_idx = eikonal_indices(n_samples, cfg.train.curvature_fraction, generator,
+                                   scene.device)
     mask = batch["mask"]
     mask = (mask > 0.5).float() if cfg.train.mask_weight > 0 else torch.ones_like(mask)
     anneal = (1.0 if cfg.train.anneal_end <= 0 else
@@ -193,7 +204,26 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
     emap = pool.error_map if pool is not None else None
     return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
                       anneal, mask_scale, span, pick if emap is not None else None, weight,
-                      emap.foreground if emap is not None else 1.0)
+                      emap.foreground if emap is not None else 1.0, curv_idx)
+
+
+def curvature_at_samples(model: NeuSModel, origins: Tensor, dirs: Tensor, out: RenderOutput,
+                         idx: Tensor) -> Tensor:
+    """The `curvature` term at the step's samples `idx` (flat indices into (B, N)): the SDF's
+    Laplacian (`SDFNetwork.laplacian`) at the section midpoints, over the samples the
+    Eikonal term counts.
+
+    Args:
+        origins, dirs: (B, 3); out: the step's render; idx: (k,) indices < B * N.
+
+    Returns:
+        () loss.
+    """
+    n = out.t_mid.shape[1]
+    ray = idx // n
+    pts = origins[ray] + dirs[ray] * out.t_mid.reshape(-1)[idx, None].detach()  # (k, 3)
+    lap = model.sdf.laplacian(pts).float()
+    return curvature(lap, out.eikonal_mask.reshape(-1)[idx])
 
 
 def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: Sampler,
@@ -209,9 +239,13 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: 
         out = render_rays(model, inputs.origins, inputs.dirs, cfg.render, sampler,
                           cos_anneal_ratio=inputs.anneal, create_graph=True, bounds=bounds,
                           noise=inputs.noise, span=inputs.span)
+    curv = None
+    if inputs.curvature_idx is not None:
+        curv = curvature_at_samples(model, inputs.origins, inputs.dirs, out,
+                                    inputs.curvature_idx)
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
                        eikonal_idx=inputs.eikonal_idx, ray_weight=inputs.ray_weight,
-                       foreground=inputs.foreground)
+                       foreground=inputs.foreground, curvature_term=curv)
     samples = out.active.sum() * out.t.shape[1]
     values = [losses[k] for k in LOSS_NAMES] + [out.inv_s, samples]  # () each, METRIC_NAMES
     errors = (None if inputs.ray_weight is None else

@@ -17,7 +17,8 @@ ANALYTIC = ["model.sdf.gradient=analytic"]
     ("demo", False, []),
     ("demo", True, ["render.perturb=false", "train.eikonal_fraction=0.5"]),
     ("demo", False, ["sampler=hvs", "train.anneal_end=100"]),
-], ids=["demo-extra0", "demo-extra1", "demo-extra2"])
+    ("demo", True, ["train.curvature_weight=0.01"]),
+], ids=["demo-extra0", "demo-extra1", "demo-extra2", "demo-curvature"])
 def test_the_step_has_no_graph_break(small, sphere_scene, tmp_path, conf, with_small, extra):
     scene = sphere_scene(tmp_path / "s")
     cfg = load_config(conf, ANALYTIC + (small if with_small else []) + extra)
