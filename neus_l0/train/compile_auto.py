@@ -67,9 +67,9 @@ WARM_COMPILE_S = {"cpu": 12.0, "cuda": 20.0}
 UNSEEN_FACTOR = 30.0
 #: Config sections that do not change the compiled graph (the optimiser and the schedule run
 #: outside it); everything else in the config is part of the record's key.
-_NOT_IN_GRAPH = ("iters", "lr", "lr_alpha", "lr_decay_iters", "warm_up", "seed", "log_every", "val_every",
-                 "val_downscale", "save_every", "keep_checkpoints", "max_seconds", "compile",
-                 "tensorboard", "threads", "budget", "early_stop")
+_NOT_IN_GRAPH = ("iters", "lr", "lr_alpha", "lr_decay_iters", "warm_up", "seed", "log_every",
+                 "val_every", "val_downscale", "save_every", "keep_checkpoints", "max_seconds",
+                 "compile", "tensorboard", "threads", "budget", "early_stop")
 
 
 def step_key(cfg: Config, device: str) -> str:

@@ -14,6 +14,7 @@ from neus_l0.errors import ConfigError
 from neus_l0.fields.encodings import HashGridEncoding
 from neus_l0.fields.model import make_model
 from neus_l0.fields.sdf import SDFNetwork
+from neus_l0.sampling.upsample import build_sampler
 from neus_l0.train.losses import LOSS_NAMES, curvature
 from neus_l0.train.step import (
     draw_step_inputs,
@@ -21,7 +22,6 @@ from neus_l0.train.step import (
     render_and_loss,
     train_step,
 )
-from neus_l0.sampling.upsample import build_sampler
 
 
 class QuadraticSDF(SDFNetwork):
