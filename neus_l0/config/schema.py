@@ -428,9 +428,11 @@ class TrainConfig:
     budget: Seconds = Seconds(0.0)
     """Time for the whole run, end to end (start-up, compile, steps, the final checkpoint):
     seconds, or ``90s``, ``10m``, ``1h`` (0: off, `iters` decides). The step rate is
-    measured after the compile on a few steps that are then undone; `iters` is set from it
-    and the schedule's landmarks (`warm_up`, `anneal_end`, the hash grid's `update_steps`,
-    `val_every`, `save_every`) keep their fraction of it (`neus_l0.train.budget`). The run's
+    measured after the compile on a few steps that are then undone; `iters` is set from it.
+    Longer than the config's `iters`, the schedule's landmarks (`warm_up`, `anneal_end`, the
+    hash grid's `update_steps`, the learning rate's decay) keep their fraction of it;
+    shorter, they keep their iterations and the run stops part-way down the config's
+    schedule (`lr_decay_iters`; `neus_l0.train.budget.planned_config`). The run's
     config.yaml records the plan with ``budget: 0``, so a resume or a re-run of it trains
     the same schedule; ``RUN/budget.json`` records the budget and the measurements. If the
     step rate drifts later, the rest of the schedule is compressed (or stretched) to end in

@@ -116,7 +116,8 @@ def planned_config(cfg: Config, iters: int) -> Config:
     ``update_steps`` keep their fraction of the run. Shorter: they keep their iterations and
     ``train.lr_decay_iters`` becomes the config's length, so the run follows the config's
     curve and stops early (a curve compressed into fewer steps ended at a learning rate too
-    low to finish the surface: 60 s budgets scored about 1.5x worse, docs/BENCHMARKS.md,
+    low to finish the surface: 60 s budgets scored 2.25 / 2.14 / 2.12 on the demo,
+    pits-and-thin and the bunny compressed, 1.33 / 1.57 / 1.88 so; docs/BENCHMARKS.md,
     "What does a --budget buy"). Either way ``train.val_every`` and ``train.save_every``
     keep their fraction (at least 1 where they were on), and ``train.budget`` and
     ``train.max_seconds`` become 0 (the plan is the schedule).
