@@ -132,9 +132,10 @@ class ColorConfig:
     weight_norm: bool = True
     """Weight normalisation on every linear layer."""
     view_warmup: float = 0.0
-    """Fraction of the schedule (``train.iters``) over which the view direction's encoding
-    fades in, linearly from 0 (a colour that cannot vary with the view, so that it cannot
-    fake geometry with shading) to 1; 0: the whole encoding from the start (NeuS)."""
+    """Fraction of the schedule (``train.iters``, or ``train.lr_decay_iters`` when set) over
+    which the view direction's encoding fades in, linearly from 0 (a colour that cannot vary
+    with the view, so that it cannot fake geometry with shading) to 1; 0: the whole
+    encoding from the start (NeuS)."""
 
 
 @dataclass

@@ -88,11 +88,18 @@ def update_occupancy(grid: OccupancyGrid | None, model: NeuSModel, cfg: Config,
         grid.update(model.sdf.sdf, model.variance.inv_s())
 
 
+def schedule_length(cfg: Config) -> int:
+    """The iterations the schedule is laid over: ``train.lr_decay_iters``, or ``train.iters``
+    when it is 0 (a budget shorter than its config stops part-way down the config's length:
+    `neus_l0.train.budget.planned_config`)."""
+    return cfg.train.lr_decay_iters or cfg.train.iters
+
+
 def set_learning_rate(optimizer: torch.optim.Optimizer, cfg: Config,
                       iteration: float) -> float:
     """Apply NeuS's schedule for `iteration` and return the learning rate."""
     t = cfg.train
-    lr = t.lr * lr_factor(iteration, t.warm_up, t.lr_decay_iters or t.iters, t.lr_alpha)
+    lr = t.lr * lr_factor(iteration, t.warm_up, schedule_length(cfg), t.lr_alpha)
     for group in optimizer.param_groups:
         group["lr"] = lr
     return lr
@@ -288,9 +295,9 @@ def set_level_steps(model: NeuSModel, steps: int) -> None:
 
 
 def view_scale(cfg: Config, at: float) -> float:
-    """The view encoding's weight at schedule iteration `at`: ``at / (f * iters)`` up to 1,
-    f the config's ``model.color.view_warmup`` (1 when it is 0)."""
-    span = cfg.model.color.view_warmup * cfg.train.iters
+    """The view encoding's weight at schedule iteration `at`: ``at / (f * L)`` up to 1, f the
+    config's ``model.color.view_warmup`` (1 when it is 0), L the `schedule_length`."""
+    span = cfg.model.color.view_warmup * schedule_length(cfg)
     return 1.0 if span <= 0 else min(1.0, max(0.0, at / span))
 
 

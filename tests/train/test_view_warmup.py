@@ -18,6 +18,19 @@ def test_the_weight_ramps_linearly_then_holds():
     assert view_scale(load_config("demo", ["train.iters=1000"]), 0) == 1.0  # off: NeuS
 
 
+def test_a_budget_shorter_than_its_config_keeps_the_ramps_iterations():
+    """A shorter plan stops part-way down the config's schedule: the view weight at each
+    iteration is the config's own, as the learning rate is."""
+    from neus_l0.train.budget import planned_config
+
+    cfg = load_config("demo", ["train.iters=1000", "model.color.view_warmup=0.2"])
+    short = planned_config(cfg, 400)
+    assert [view_scale(short, at) for at in (0, 100, 200, 399)] == pytest.approx(
+        [view_scale(cfg, at) for at in (0, 100, 200, 399)])
+    long = planned_config(cfg, 2000)  # stretched: the same fraction of the longer run
+    assert view_scale(long, 200) == pytest.approx(0.5)
+
+
 def test_range_and_off_by_default():
     assert load_config("demo").model.color.view_warmup == 0.0
     with pytest.raises(ConfigError, match="view_warmup"):
