@@ -367,6 +367,17 @@ def load_newest_checkpoint(run_dir: str | Path,
                       f"(the newest: {why}); delete or replace them")
 
 
+def _restore_view_scale(path: Path, model: torch.nn.Module, value: Any) -> None:
+    """Set the colour network's view-encoding weight a run trained with
+    (`model.color.view_warmup`: a run stopped during the ramp renders with the weight it
+    had, not the full view encoding); absent: left at 1."""
+    if value is None:
+        return
+    if not isinstance(value, (int, float)) or not 0.0 <= float(value) <= 1.0:
+        raise NeusL0Error(f"{path}: view_scale must be a number in [0, 1], not {value!r}")
+    model.color.view_scale.fill_(float(value))
+
+
 def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
                        checkpoint: str | Path | None = None
                        ) -> tuple[NeuSModel, Config, dict]:
@@ -400,6 +411,7 @@ def load_trained_model(run_dir: str | Path, device: str | torch.device = "cpu",
         raise NeusL0Error(f"{path}: its config is not valid: {exc}") from None
     model = make_model(cfg, device)
     load_weights(path, model, state["model"], "a damaged or foreign file")
+    _restore_view_scale(path, model, state.get("view_scale"))
     model.eval()
     info = {k: v for k, v in state.items() if k not in ("model", "optimizer", "rng")}
     info["path"] = path

@@ -126,6 +126,8 @@ class RunState:
         }
         if self.setup.warp is not None and self.setup.warp.warped:
             state["schedule"] = self.setup.warp.to_dict()
+        if self.cfg.model.color.view_warmup > 0:  # rendering from it uses the same weight
+            state["view_scale"] = float(self.model.color.view_scale)
         if self.occupancy is not None:
             state["occupancy"] = self.occupancy.state_dict()
         if self.scaler.is_enabled():

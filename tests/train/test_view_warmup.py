@@ -60,3 +60,25 @@ def test_the_step_sets_the_weight_from_the_schedule(small, sphere_scene, tmp_pat
     for it, want in ((0, 0.0), (10, 0.2), (60, 1.0)):
         train_step(model, opt, scene, cfg, it, g, batch_size=16)
         assert model.color.view_scale.item() == pytest.approx(want)
+
+
+def test_a_run_stopped_during_the_ramp_renders_with_its_weight(small, sphere_scene, tmp_path):
+    """The checkpoint keeps the view weight of its last step; loading it for rendering sets
+    it (a render with the full view encoding would show a colour the run never trained)."""
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.run.checkpoints import latest_checkpoint, load_checkpoint, load_trained_model
+    from neus_l0.train.loop import train
+
+    scene = sphere_scene(tmp_path / "s")
+    cfg = load_config("demo", small + ["train.iters=6", "model.color.view_warmup=1.0",
+                                       "train.compile=false", "train.val_every=0"])
+    train(scene, cfg, tmp_path / "run", progress=False)
+    ckpt = latest_checkpoint(tmp_path / "run")
+    state = load_checkpoint(ckpt)
+    assert state["view_scale"] == pytest.approx(5 / 6)  # the last step was iteration 5
+    model, _, _ = load_trained_model(tmp_path / "run")
+    assert model.color.view_scale.item() == pytest.approx(5 / 6)
+    state["view_scale"] = float("nan")
+    torch.save(state, ckpt)
+    with pytest.raises(NeusL0Error, match="view_scale"):
+        load_trained_model(tmp_path / "run")
