@@ -15,8 +15,11 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                                    "On a scene without ground truth (no gt_mesh.ply, e.g. a "
                                    "DTU scan): the samplers' meshes shaded side by side, with "
                                    "zoomed crops on the places where they differ most.")
-    p.add_argument("--bench", required=True, metavar="DIR",
-                   help="output folder of `neus-l0 bench`")
+    p.add_argument("--bench", required=True, metavar="DIR[,DIR2...]",
+                   help="output folder of `neus-l0 bench`; several, comma-separated, put "
+                        "their runs side by side (the arms of a paired comparison, e.g. "
+                        "`--bench OFF,ON --samplers l0`: the first folder picks the scene, "
+                        "budget and seed)")
     p.add_argument("--out", required=True, metavar="FIGDIR",
                    help="folder for the PNGs and index.md")
     p.add_argument("--scene", default=None,
@@ -52,20 +55,23 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.errors import NeusL0Error
     from neus_l0.figures.make import make_figures, write_index
     from neus_l0.figures.real import make_real_figures
-    from neus_l0.figures.runs import select_runs
+    from neus_l0.figures.runs import select_arms
 
     samplers = [s.strip() for s in args.samplers.split(",") if s.strip()]
     if not samplers or len(set(samplers)) != len(samplers):
         raise NeusL0Error(f"--samplers {args.samplers!r}: give distinct sampler names")
     if args.width < 32 or args.crop < 32:
         raise NeusL0Error("--width and --crop must be at least 32 pixels")
-    bench, out = Path(args.bench), check_output_dir(args.out, "--out", (), ("*.png", "index.md"),
-                                                        "a figures folder")
+    benches = [Path(b.strip()) for b in args.bench.split(",") if b.strip()]
+    if not benches:
+        raise NeusL0Error("--bench: give a bench folder")
+    out = check_output_dir(args.out, "--out", (), ("*.png", "index.md"), "a figures folder")
     if args.regions < 1:
         raise NeusL0Error(f"--regions {args.regions}: give at least 1")
-    scene_dir, runs = select_runs(bench, samplers, args.scene, args.budget, args.seed)
+    scene_dir, runs = select_arms(benches, samplers, args.scene, args.budget, args.seed)
     first = next(iter(runs.values()))
-    command = (f"neus-l0 figures --bench {bench} --out {out} --scene {first.scene}"
+    command = (f"neus-l0 figures --bench {','.join(map(str, benches))} --out {out} "
+               f"--scene {first.scene}"
                f" --budget {first.budget_s:g} --seed {first.seed}"
                f" --samplers {','.join(samplers)}")
     if (scene_dir / "gt_mesh.ply").is_file():
@@ -73,9 +79,9 @@ def run(args: argparse.Namespace) -> int:
             entries = make_figures(scene_dir, runs, out, overview_width=args.width,
                                    crop_size=args.crop, error_max=args.error_max, pit=args.pit)
     else:
-        if len(samplers) < 2:
-            raise NeusL0Error(f"{scene_dir}: no ground truth, so the figures compare samplers: "
-                              "give two or more with --samplers")
+        if len(runs) < 2:
+            raise NeusL0Error(f"{scene_dir}: no ground truth, so the figures compare runs: "
+                              "give two or more samplers with --samplers (or bench folders)")
         print(f"{scene_dir}: no gt_mesh.ply: shaded meshes side by side and the "
               f"{args.regions} places where they differ most (no error colours)")
         for opt, value in (("--pit", args.pit), ("--error-max", args.error_max)):
@@ -84,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
         entries = make_real_figures(scene_dir, runs, out, overview_width=args.width,
                                     crop_size=args.crop, regions=args.regions)
         command += f" --regions {args.regions}"
-    index = write_index(out, entries, bench, runs, scene_dir, command)
+    index = write_index(out, entries, benches if len(benches) > 1 else benches[0], runs,
+                        scene_dir, command)
     for e in entries:
         print(out / e.file)
     print(index)

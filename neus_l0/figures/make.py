@@ -312,8 +312,9 @@ def ray_figure(out: Path, inp: FigureInputs, pit: str | None = None,
         if scale_mat is None:  # a checkpoint without it: the scene's own
             scale_mat = np.load(camera_file(inp.scene_dir))["scale_mat_0"]
         scale_mat = np.asarray(scale_mat, dtype=np.float64)
-        profiles.append((f"{s} run (iteration {info.get('iteration', '?')})", s,
-                         ray_profile(model, cfg, ray.origin, ray.direction, scale_mat, s)))
+        profiles.append((f"{s} run (iteration {info.get('iteration', '?')})", run.sampler,
+                         ray_profile(model, cfg, ray.origin, ray.direction, scale_mat,
+                                     run.sampler)))
     x, y = (int(v) for v in ray.xy)
     plot_ray_weights(out / "ray_weights.png", ray, profiles,
                      f"First up-sampling round along the ray of camera {ray.view}, pixel "
@@ -333,13 +334,14 @@ def ray_figure(out: Path, inp: FigureInputs, pit: str | None = None,
                         [r.run_dir.name for r in runs.values()])]
 
 
-def write_index(out: Path, entries: list[FigureEntry], bench: Path,
+def write_index(out: Path, entries: list[FigureEntry], bench: Path | list[Path],
                 runs: dict[str, BenchRun], scene_dir: Path, command: str) -> Path:
     """`out/index.md`: the command, the runs, and one section per figure."""
     from neus_l0.atomic import atomic_write_text
 
-    lines = ["# Figures", "", f"Made by `{command}` from the bench folder `{bench}`.", "",
-             f"Scene: `{scene_dir}`.", "", "| sampler | run | mesh | accuracy | completeness "
+    folders = ", ".join(f"`{b}`" for b in (bench if isinstance(bench, list) else [bench]))
+    lines = ["# Figures", "", f"Made by `{command}` from the bench folder(s) {folders}.", "",
+             f"Scene: `{scene_dir}`.", "", "| arm | run | mesh | accuracy | completeness "
              "| overall | train s | iterations |", "|---|---|---|---|---|---|---|---|"]
     for s, r in runs.items():
         row = r.row

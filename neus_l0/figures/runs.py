@@ -151,3 +151,32 @@ def select_runs(bench: str | Path, samplers: list[str], scene: str | None = None
             raise NeusL0Error(f"{mesh}: mesh of the {s} run missing")
         runs[s] = BenchRun(scene, s, b, sd, run_dir, mesh, row)
     return _scene_folder(bench, scene, runs), runs
+
+
+def select_arms(benches: list[Path], samplers: list[str], scene: str | None = None,
+                budget: float | None = None, seed: int | None = None
+                ) -> tuple[Path, dict[str, BenchRun]]:
+    """`select_runs` over several bench folders (the arms of a paired comparison, e.g. a
+    remedy off and on): the first folder picks the scene, budget and seed, the others must
+    hold the same runs. One folder: `select_runs` as it is.
+
+    Returns:
+        (the first folder's scene_dir, {"<folder name> <sampler>": BenchRun}); the keys are
+        the figures' column titles.
+
+    Raises:
+        NeusL0Error: as `select_runs`, or two folders with the same name.
+    """
+    if len(benches) == 1:
+        return select_runs(benches[0], samplers, scene, budget, seed)
+    names = [Path(b).name for b in benches]
+    if len(set(names)) != len(names):
+        raise NeusL0Error(f"--bench: two folders share a name ({', '.join(names)}): the "
+                          "figures title their columns by folder name")
+    scene_dir, first = select_runs(benches[0], samplers, scene, budget, seed)
+    pick = next(iter(first.values()))
+    runs = {f"{names[0]} {s}": r for s, r in first.items()}
+    for bench, name in zip(benches[1:], names[1:], strict=True):
+        _, more = select_runs(bench, samplers, pick.scene, pick.budget_s, pick.seed)
+        runs.update({f"{name} {s}": r for s, r in more.items()})
+    return scene_dir, runs

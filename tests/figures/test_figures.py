@@ -205,3 +205,27 @@ def test_section_pieces_curve_gives_each_section_its_weight():
     x, pdf = x.reshape(8, -1), pdf.reshape(8, -1)  # two pieces per section
     piece = (0.5 * (pdf[:, 1:] + pdf[:, :-1]) * (x[:, 1:] - x[:, :-1])).sum(-1)
     torch.testing.assert_close(piece.reshape(4, 2).sum(-1), w[0] / w.sum(), atol=1e-6, rtol=0)
+
+
+def test_two_bench_folders_side_by_side(bench, tmp_path, capsys):
+    """`--bench OFF,ON --samplers l0`: the arms of a paired comparison in one figure, titled
+    by folder; the ray figure still draws each run's own sampler."""
+    import shutil
+
+    on = tmp_path / "ON"
+    shutil.copytree(bench, on)
+    out = tmp_path / "fig"
+    rc = main(["figures", "--bench", f"{bench},{on}", "--samplers", "l0", "--out", str(out),
+               "--width", "160", "--crop", "64"])
+    assert rc == 0, capsys.readouterr().err
+    index = (out / "index.md").read_text()
+    assert f"| {bench.name} l0 |" in index and "| ON l0 |" in index
+    assert f"`{bench}`" in index and f"`{on}`" in index
+    for name in ("overview_error.png", "pits_error.png", "ray_weights.png"):
+        assert _png(out / name).std() > 0.05, name
+    same = tmp_path / "x" / bench.name
+    shutil.copytree(bench, same)
+    rc = main(["figures", "--bench", f"{bench},{same}", "--samplers", "l0",
+               "--out", str(tmp_path / "fig2")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "share a name" in err and len(err.splitlines()) == 1
