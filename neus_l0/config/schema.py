@@ -394,9 +394,8 @@ class TrainConfig:
     lr_alpha: float = 0.05
     """Final learning rate as a fraction of `lr` (cosine decay)."""
     lr_decay_iters: int = 0
-    """Length of the cosine decay in iterations (0: `iters`). Set longer than `iters`, the
-    run stops part-way down the curve: what a budget run does when its budget buys fewer
-    iterations than its config's own `iters` (`neus_l0.train.budget.planned_config`)."""
+    """Length of the cosine decay in iterations (0: `iters`); set longer than `iters`, the
+    run stops part-way down the curve (a budget scales it with the schedule)."""
     warm_up: int = 5000
     """Iterations of linear learning-rate warm-up."""
     anneal_end: int = 0
@@ -429,11 +428,10 @@ class TrainConfig:
     budget: Seconds = Seconds(0.0)
     """Time for the whole run, end to end (start-up, compile, steps, the final checkpoint):
     seconds, or ``90s``, ``10m``, ``1h`` (0: off, `iters` decides). The step rate is
-    measured after the compile on a few steps that are then undone; `iters` is set from it.
-    Longer than the config's `iters`, the schedule's landmarks (`warm_up`, `anneal_end`, the
-    hash grid's `update_steps`, the learning rate's decay) keep their fraction of it;
-    shorter, they keep their iterations and the run stops part-way down the config's
-    schedule (`lr_decay_iters`; `neus_l0.train.budget.planned_config`). The run's
+    measured after the compile on a few steps that are then undone; `iters` is set from it
+    and the schedule's landmarks (`warm_up`, `anneal_end`, `lr_decay_iters`, the hash grid's
+    `update_steps`, `val_every`, `save_every`) keep their fraction of it
+    (`neus_l0.train.budget.planned_config`). The run's
     config.yaml records the plan with ``budget: 0``, so a resume or a re-run of it trains
     the same schedule; ``RUN/budget.json`` records the budget and the measurements. If the
     step rate drifts later, the rest of the schedule is compressed (or stretched) to end in

@@ -5,11 +5,10 @@ render and a checkpoint cost (`StepCosts`, `neus_l0.train.probe`), then:
 
 * `plan_iterations`: how many iterations fit in what is left of the budget, less the
   validations and checkpoints the schedule holds and a reserve for the final checkpoint;
-* `planned_config`: the config with that `train.iters`; a run longer than the config's
-  stretches the schedule's landmarks (`warm_up`, `anneal_end`, the hash grid's
-  `update_steps`, the learning rate's decay), a shorter one keeps them and stops part-way
-  down the config's curve; recorded with ``budget: 0`` (re-running it trains the same
-  schedule);
+* `planned_config`: the config with that `train.iters` and the schedule's landmarks
+  (`warm_up`, `anneal_end`, the hash grid's `update_steps`, `val_every`, `save_every`)
+  scaled to keep their fraction of the run, recorded with ``budget: 0`` (re-running it
+  trains the same schedule);
 * while it runs, `retarget_end` shortens the rest of the schedule when the steps slow down
   (another job starts), or lengthens it when they speed up, and `ScheduleWarp` maps the
   real iteration to the iteration of the recorded schedule, so that the learning rate, the
@@ -108,32 +107,24 @@ def _scaled(value: int, ratio: float, least: int) -> int:
 
 
 def planned_config(cfg: Config, iters: int) -> Config:
-    """`cfg` with `iters` iterations: a longer run stretches its schedule, a shorter one
-    stops part-way down the config's own.
+    """`cfg` with `iters` iterations and its landmarks at the same fractions of the run.
 
-    Longer (`iters` >= ``train.iters``): ``train.warm_up``, ``train.anneal_end``, the
-    learning rate's decay (``train.lr_decay_iters`` when set) and the SDF hash grid's
-    ``update_steps`` keep their fraction of the run. Shorter: they keep their iterations and
-    ``train.lr_decay_iters`` becomes the config's length, so the run follows the config's
-    curve and stops early (a curve compressed into fewer steps ended at a learning rate too
-    low to finish the surface: 60 s budgets scored 2.25 / 2.14 / 2.12 on the demo,
-    pits-and-thin and the bunny compressed, 1.33 / 1.57 / 1.88 so; docs/BENCHMARKS.md,
-    "What does a --budget buy"). Either way ``train.val_every`` and ``train.save_every``
-    keep their fraction (at least 1 where they were on), and ``train.budget`` and
-    ``train.max_seconds`` become 0 (the plan is the schedule).
+    Scaled: ``train.warm_up``, ``train.anneal_end``, ``train.lr_decay_iters`` (when set),
+    ``train.val_every``, ``train.save_every`` and the SDF hash grid's ``update_steps`` (at
+    least 1 where they were on); ``train.budget`` and ``train.max_seconds`` become 0 (the plan
+    is the schedule). A shorter plan compresses the schedule too: stopping part-way down the
+    config's own (tried in session 11) scored within seed noise on the tuning scenes and worse
+    on the held-out cup (docs/BENCHMARKS.md, "What does a --budget buy").
     """
     t = cfg.train
     r = iters / t.iters
-    landmarks = r if r >= 1.0 else 1.0
-    decay = (_scaled(t.lr_decay_iters, r, 1) if r >= 1.0
-             else t.lr_decay_iters or t.iters)
     train = dataclasses.replace(
-        t, iters=iters, warm_up=_scaled(t.warm_up, landmarks, 1),
-        anneal_end=_scaled(t.anneal_end, landmarks, 1), lr_decay_iters=decay,
+        t, iters=iters, warm_up=_scaled(t.warm_up, r, 1), anneal_end=_scaled(t.anneal_end, r, 1),
+        lr_decay_iters=_scaled(t.lr_decay_iters, r, 1),
         val_every=_scaled(t.val_every, r, 1), save_every=_scaled(t.save_every, r, 1),
         budget=0.0, max_seconds=0.0)
     enc = cfg.model.sdf.encoding
-    enc = dataclasses.replace(enc, update_steps=_scaled(enc.update_steps, landmarks, 1))
+    enc = dataclasses.replace(enc, update_steps=_scaled(enc.update_steps, r, 1))
     sdf = dataclasses.replace(cfg.model.sdf, encoding=enc)
     model = dataclasses.replace(cfg.model, sdf=sdf)
     return dataclasses.replace(cfg, train=train, model=model)
