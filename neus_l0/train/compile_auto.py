@@ -76,13 +76,33 @@ _NOT_IN_GRAPH = ("iters", "lr", "lr_alpha", "lr_decay_iters", "warm_up", "seed",
 def step_key(cfg: Config, device: str) -> str:
     """A short hash of what shapes the compiled step: torch's version, the device type, on
     the CPU the torch thread count (inductor's C++ kernels are built for it: a cache warmed
-    at 2 threads recompiles at 1), and every config key but the schedule and logging
-    (`_NOT_IN_GRAPH`)."""
-    d = to_dict(cfg)
-    d["train"] = {k: v for k, v in d["train"].items() if k not in _NOT_IN_GRAPH}
+    at 2 threads recompiles at 1), and the config's keys that differ from the schema's
+    defaults, but the schedule and logging (`_NOT_IN_GRAPH`). Keyed on the differences, a
+    key added to the schema at its default leaves every record's key as it was (the record
+    is a hint for `auto`; inductor's own cache is keyed on the graph)."""
+    d = non_default(to_dict(cfg), to_dict(Config()))
+    d["train"] = {k: v for k, v in d.get("train", {}).items() if k not in _NOT_IN_GRAPH}
     threads = torch.get_num_threads() if device == "cpu" else None
     text = json.dumps([torch.__version__, device, threads, d], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def non_default(values: dict, defaults: dict) -> dict:
+    """The entries of the nested dict `values` that differ from `defaults` (nested the same
+    way; a key missing from `defaults` counts as differing)."""
+    out = {}
+    for k, v in values.items():
+        base = defaults.get(k, _MISSING)
+        if isinstance(v, dict) and isinstance(base, dict):
+            sub = non_default(v, base)
+            if sub:
+                out[k] = sub
+        elif base is _MISSING or v != base:
+            out[k] = v
+    return out
+
+
+_MISSING = object()
 
 
 def read_record(path: Path | None = None) -> dict:

@@ -9,6 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.errors import ConfigError
@@ -184,3 +186,36 @@ def test_the_cli_points_inductor_at_our_cache_before_torch_fixes_it(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                          check=True).stdout.splitlines()[-1]
     assert out == str(tmp_path / "mine")
+
+
+def test_a_schema_key_added_at_its_default_keeps_every_step_key(monkeypatch):
+    """The record outlives schema changes: a new key at its default (in the run's config
+    and in the defaults alike) leaves the key as it was; set to another value it moves it."""
+    cfg = load_config("demo")
+    key = ca.step_key(cfg, "cpu")
+    plain = ca.to_dict
+
+    def with_new_key(value, new=3):
+        d = plain(value)
+        d["model"]["sdf"]["new_knob"] = new if value is cfg else 3
+        return d
+
+    monkeypatch.setattr(ca, "to_dict", with_new_key)
+    assert ca.step_key(cfg, "cpu") == key
+    monkeypatch.setattr(ca, "to_dict", lambda value: with_new_key(value, new=4))
+    assert ca.step_key(cfg, "cpu") != key
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4),
+       st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4),
+       st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4))
+def test_non_default_keeps_exactly_the_entries_that_differ(top, inner, inner_default):
+    values = {**{f"x{k}": v for k, v in top.items()}, "sub": inner}
+    defaults = {"xa": 0, "xb": 1, "sub": inner_default}
+    got = ca.non_default(values, defaults)
+    want = {k: v for k, v in values.items() if k != "sub" and defaults.get(k, None) != v}
+    sub = {k: v for k, v in inner.items() if inner_default.get(k, None) != v}
+    if sub:
+        want["sub"] = sub
+    assert got == want
