@@ -6,7 +6,8 @@ Usage:
         [--fast-conf fast --fast-sampler hvs --fast-seconds 120] [--snapshots-per-run 4] \
         [--budget 60] [--seed 0] [--device cpu|cuda] [--threads N] [--resolution 128] \
         [--eval-density 0.5] [--views 24 --width 200 --height 150] [--holdout 0] \
-        [--timeout S] [--neus-set KEY=VALUE ...] [--fast-set KEY=VALUE ...] [override ...]
+        [--timeout S] [--arms fast,budget,neus] [--neus-set KEY=VALUE ...] \
+        [--fast-set KEY=VALUE ...] [override ...]
 
 Per scene (a built-in name, synthesised into DIR/scenes/ at --views/--width/--height, or a
 scene folder such as one made by ``neus-l0 synth MESH DIR``), two runs one after the other,
@@ -23,7 +24,10 @@ final mesh extraction time, Chamfer at the end; each arm's curve; the verdict: N
 Chamfer, the fast arm's at its budget, when the fast arm first reaches NeuS's final Chamfer,
 whether it is still improving), ``chamfer_vs_time.png``, and results.csv / results.json.
 Re-running on DIR skips the runs already done with the same settings (and refuses a done
-run made with other settings); failed runs are recorded and run again.
+run made with other settings); failed runs are recorded and run again. ``--arms`` runs only
+the arms it names and reads the others as their folders hold them: on a GPU lent by the call,
+``--arms neus --neus-seconds 480 --timeout 585`` fits NeuS's arm (8 minutes of training, its
+compile included, then meshing and scoring) in one 600 s call.
 
 With ``--budget SECONDS`` a third arm, ``budget``, trains the fast arm's config with
 ``train.budget`` (the whole run within SECONDS, its schedule planned and finished; see
@@ -76,6 +80,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="add a third arm per scene, 'budget': the fast arm's config trained "
                         "with train.budget=SECONDS (iterations planned from the measured "
                         "step rate, start-up and compile counted; scored at its end)")
+    p.add_argument("--arms", default=None, metavar="ARM,...",
+                   help="run only these arms (fast, budget, neus; default: all): the others "
+                        "are read as their folders hold them, so that one long arm can run "
+                        "in a call of its own")
     p.add_argument("--snapshots-per-run", type=int, default=4,
                    help="snapshots per run at budget*k/n, the last at the budget (4)")
     p.add_argument("--seed", type=int, default=0)
@@ -110,6 +118,11 @@ def _check_args(args: argparse.Namespace) -> None:
             raise NeusL0Error(f"--{arm}-seconds must be positive")
     if args.budget < 0:
         raise NeusL0Error("--budget must be positive (or 0: no budget arm)")
+    chosen = _chosen_arms(args)
+    if not chosen:
+        raise NeusL0Error("--arms: name at least one of fast, budget, neus")
+    if "budget" in chosen and not args.budget:
+        raise NeusL0Error("--arms budget needs --budget SECONDS")
     if args.snapshots_per_run < 1:
         raise NeusL0Error("--snapshots-per-run must be at least 1")
     for o in [*args.overrides, *args.neus_set, *args.fast_set]:
@@ -117,6 +130,19 @@ def _check_args(args: argparse.Namespace) -> None:
         if key in ("sampler", "train.seed", "train.max_seconds"):
             raise NeusL0Error(f"override {o}: set it with --*-sampler, --seed or "
                               "--*-seconds instead")
+
+
+def _chosen_arms(args: argparse.Namespace) -> set[str]:
+    """The arms this invocation runs (`--arms`; all when not given); an unknown name raises."""
+    every = {*ARMS, *(("budget",) if args.budget else ())}
+    if args.arms is None:
+        return every
+    names = {a.strip() for a in args.arms.split(",") if a.strip()}
+    unknown = names - {*ARMS, "budget"}
+    if unknown:
+        raise NeusL0Error(f"--arms: unknown arm {', '.join(sorted(unknown))} "
+                          "(fast, budget, neus)")
+    return names
 
 
 def build_specs(args: argparse.Namespace, out: Path) -> list[RunSpec]:
@@ -161,14 +187,25 @@ def _budget_spec(fast: RunSpec, seconds: float) -> RunSpec:
 
 
 def _same_spec(spec: RunSpec) -> bool:
-    """Whether the run folder's spec.json describes `spec` (paths aside)."""
+    """Whether the run folder's spec.json describes `spec` (paths aside; the configs compared
+    by their non-default keys, so a key the schema gained at its default still matches)."""
+    from neus_l0.config.load import non_default, to_dict
+    from neus_l0.config.schema import Config
+
     try:
         old = json.loads((spec.run_dir / "spec.json").read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError):
         return False
     new = json.loads(json.dumps(dataclasses.asdict(spec)))  # tuples -> lists, as stored
-    return ({k: v for k, v in old.items() if k not in UNCHECKED}
-            == {k: v for k, v in new.items() if k not in UNCHECKED})
+    defaults = json.loads(json.dumps(to_dict(Config())))
+
+    def comparable(d: dict) -> dict:
+        d = {k: v for k, v in d.items() if k not in UNCHECKED}
+        if isinstance(d.get("config"), dict):
+            d["config"] = non_default(d["config"], defaults)
+        return d
+
+    return comparable(old) == comparable(new)
 
 
 def write_summary(out: Path, specs: list[RunSpec], machine: dict, argv: list[str]) -> dict:
@@ -198,7 +235,8 @@ def write_summary(out: Path, specs: list[RunSpec], machine: dict, argv: list[str
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the benchmark; 0 when every run is done, 1 when one failed, 2 on a user error."""
+    """Run the benchmark; 0 when every run of `--arms` is done, 1 when one failed, 2 on a user
+    error."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parse_args(argv)
     out = Path(args.out).resolve()
@@ -206,7 +244,9 @@ def main(argv: list[str] | None = None) -> int:
         _check_args(args)
         out.mkdir(parents=True, exist_ok=True)
         specs = build_specs(args, out)
-        stale = [s.name for s in specs if is_done(s.run_dir) and not _same_spec(s)]
+        chosen = _chosen_arms(args)
+        stale = [s.name for s in specs
+                 if s.label in chosen and is_done(s.run_dir) and not _same_spec(s)]
         if stale:
             raise NeusL0Error(f"{out}: runs {', '.join(stale)} were made with other settings; "
                               "use another --out so that the arms stay comparable")
@@ -216,6 +256,9 @@ def main(argv: list[str] | None = None) -> int:
     machine = arms.machine_info(args.device)
     print(arms.machine_line(machine), flush=True)
     for spec in specs:
+        if spec.label not in chosen:
+            print(f"{spec.name}: not in --arms, read as its folder holds it", flush=True)
+            continue
         if is_done(spec.run_dir):
             print(f"{spec.name}: done before, skipped", flush=True)
             continue
@@ -233,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"written: {out / 'summary.json'}, {out / 'table.md'}, "
           f"{out / 'chamfer_vs_time.png'}")
     done = all(a["status"] == "done" for s in summary["scenes"].values()
-               for a in s["arms"].values())
+               for label, a in s["arms"].items() if label in chosen)
     return 0 if done else 1
 
 

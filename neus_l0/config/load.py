@@ -150,6 +150,24 @@ def to_dict(cfg: Any) -> dict:
     return dataclasses.asdict(cfg)
 
 
+_MISSING = object()
+
+
+def non_default(values: dict, defaults: dict) -> dict:
+    """The entries of the nested dict `values` that differ from `defaults` (nested the same
+    way; a key missing from `defaults` counts as differing)."""
+    out = {}
+    for k, v in values.items():
+        base = defaults.get(k, _MISSING)
+        if isinstance(v, dict) and isinstance(base, dict):
+            sub = non_default(v, base)
+            if sub:
+                out[k] = sub
+        elif base is _MISSING or v != base:
+            out[k] = v
+    return out
+
+
 def conf_names() -> list[str]:
     """The built-in configs' names (``confs/*.yaml``), sorted."""
     return sorted(p.stem for p in CONFS_DIR.glob("*.yaml"))

@@ -37,7 +37,7 @@ from pathlib import Path
 import torch
 
 from neus_l0.atomic import atomic_write_json
-from neus_l0.config.load import load_config, to_dict
+from neus_l0.config.load import load_config, non_default, to_dict
 from neus_l0.config.schema import Config
 from neus_l0.errors import NeusL0Error
 from neus_l0.run.resumes import recorded_overrides
@@ -85,24 +85,6 @@ def step_key(cfg: Config, device: str) -> str:
     threads = torch.get_num_threads() if device == "cpu" else None
     text = json.dumps([torch.__version__, device, threads, d], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def non_default(values: dict, defaults: dict) -> dict:
-    """The entries of the nested dict `values` that differ from `defaults` (nested the same
-    way; a key missing from `defaults` counts as differing)."""
-    out = {}
-    for k, v in values.items():
-        base = defaults.get(k, _MISSING)
-        if isinstance(v, dict) and isinstance(base, dict):
-            sub = non_default(v, base)
-            if sub:
-                out[k] = sub
-        elif base is _MISSING or v != base:
-            out[k] = v
-    return out
-
-
-_MISSING = object()
 
 
 def read_record(path: Path | None = None) -> dict:

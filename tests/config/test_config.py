@@ -3,12 +3,15 @@
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from neus_l0.config.load import (
     CONFS_DIR,
     config_from_dict,
     dump_config,
     load_config,
+    non_default,
     parse_overrides,
     resolve_conf_path,
     to_dict,
@@ -257,3 +260,18 @@ def test_bad_sampler_settings_name_the_key(override, words):
 def test_bad_hull_and_gradient_settings_name_the_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         load_config("demo", [override])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4),
+       st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4),
+       st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4))
+def test_non_default_keeps_exactly_the_entries_that_differ(top, inner, inner_default):
+    values = {**{f"x{k}": v for k, v in top.items()}, "sub": inner}
+    defaults = {"xa": 0, "xb": 1, "sub": inner_default}
+    got = non_default(values, defaults)
+    want = {k: v for k, v in values.items() if k != "sub" and defaults.get(k, None) != v}
+    sub = {k: v for k, v in inner.items() if inner_default.get(k, None) != v}
+    if sub:
+        want["sub"] = sub
+    assert got == want

@@ -148,6 +148,16 @@ def test_tool_end_to_end(tiny_scene, tmp_path, capsys):
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
     assert tool.main([*argv[:-len(TINY)], "--fast-seconds", "2", *TINY]) == 2
     assert "other settings" in capsys.readouterr().err
+    # --arms: only the named arm runs; the other is read as its folder holds it, even when
+    # this invocation would have made it otherwise
+    (out / "runs" / "demo__neus" / "status.json").unlink()
+    again = [*argv[:-len(TINY)], "--fast-seconds", "2", "--arms", "neus", *TINY]
+    assert tool.main(again) == 0
+    printed = capsys.readouterr().out
+    assert "demo__fast: not in --arms" in printed and "| demo | fast |" in printed
+    assert (out / "runs" / "demo__neus" / "status.json").is_file()
+    assert (out / "runs" / "demo__fast" / "status.json").stat().st_mtime_ns == \
+        stamps[out / "runs" / "demo__fast" / "status.json"]
 
 
 def test_tool_rejects_bad_arguments(tmp_path, capsys):
@@ -157,8 +167,11 @@ def test_tool_rejects_bad_arguments(tmp_path, capsys):
     assert tool.main([*base, "--snapshots-per-run", "0"]) == 2
     assert tool.main([*base, "sampler=hvs"]) == 2
     assert tool.main([*base, "--neus-conf", "no-such-conf"]) == 2
+    assert tool.main([*base, "--arms", "neus,slow"]) == 2
+    assert tool.main([*base, "--arms", "budget"]) == 2  # no --budget
     err = capsys.readouterr().err
     assert "--fast-seconds" in err and "--snapshots-per-run" in err and "sampler=hvs" in err
+    assert "unknown arm slow" in err and "--arms budget needs --budget" in err
     assert not (tmp_path / "x" / "runs").exists()
     assert tool.snapshot_marks(120.0, 4) == [30.0, 60.0, 90.0, 120.0]
     with pytest.raises(SystemExit):

@@ -9,8 +9,6 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.errors import ConfigError
@@ -204,18 +202,3 @@ def test_a_schema_key_added_at_its_default_keeps_every_step_key(monkeypatch):
     assert ca.step_key(cfg, "cpu") == key
     monkeypatch.setattr(ca, "to_dict", lambda value: with_new_key(value, new=4))
     assert ca.step_key(cfg, "cpu") != key
-
-
-@settings(max_examples=200, deadline=None)
-@given(st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4),
-       st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4),
-       st.dictionaries(st.sampled_from("abcd"), st.integers(0, 2), max_size=4))
-def test_non_default_keeps_exactly_the_entries_that_differ(top, inner, inner_default):
-    values = {**{f"x{k}": v for k, v in top.items()}, "sub": inner}
-    defaults = {"xa": 0, "xb": 1, "sub": inner_default}
-    got = ca.non_default(values, defaults)
-    want = {k: v for k, v in values.items() if k != "sub" and defaults.get(k, None) != v}
-    sub = {k: v for k, v in inner.items() if inner_default.get(k, None) != v}
-    if sub:
-        want["sub"] = sub
-    assert got == want
