@@ -26,8 +26,12 @@ from neus_l0.viewer.serve import PageState, refresh, status_markdown
 LIVE_RESOLUTION = 96
 
 
-def coarse_mesh(cfg, weights: dict, scale_mat: np.ndarray, hull, resolution: int):
+def coarse_mesh(cfg, weights: dict, scale_mat: np.ndarray, hull, resolution: int,
+                view_scale: float = 1.0):
     """A mesh with vertex colours (world units) from a copy of the weights, on the CPU.
+
+    `view_scale` is the colour network's view-encoding weight at the step the weights were
+    taken (`model.color.view_warmup`'s ramp; not part of the state dict).
 
     Returns:
         a trimesh, or None when the field has no surface yet.
@@ -40,6 +44,7 @@ def coarse_mesh(cfg, weights: dict, scale_mat: np.ndarray, hull, resolution: int
 
     model = make_model(cfg, "cpu")
     model.load_state_dict(weights)
+    model.color.view_scale.fill_(view_scale)
     model.eval()
     try:
         with torch.no_grad():
@@ -95,7 +100,8 @@ class LiveViewer(TrainingCallback):
         if step_check(run.iteration, run.cfg.train.val_every):
             weights = {k: v.detach().to("cpu", copy=True)
                        for k, v in run.model.state_dict().items()}
-            self.jobs.put(("mesh", run.iteration, weights))
+            view_scale = float(run.model.color.view_scale)  # a host sync, every val_every steps
+            self.jobs.put(("mesh", run.iteration, (weights, view_scale)))
 
     def on_end(self, run: RunState) -> None:
         """Stop the worker (a mesh it is building is dropped unless `finish`) and the page."""
@@ -134,8 +140,8 @@ class LiveViewer(TrainingCallback):
             if self.stopping.is_set():
                 return
             if "mesh" in kinds:
-                it, weights = kinds["mesh"]
-                mesh = coarse_mesh(cfg, weights, scale_mat, hull, self.resolution)
+                it, (weights, view_scale) = kinds["mesh"]
+                mesh = coarse_mesh(cfg, weights, scale_mat, hull, self.resolution, view_scale)
                 self.state.shown = it
                 page.set_mesh(mesh)
             if "log" in kinds or "mesh" in kinds:
