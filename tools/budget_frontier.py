@@ -9,9 +9,10 @@ planned from the measured step rate, the schedule finished); DEMO_DIR the same s
 seeds without `--plan` (the `demo` config's 3500 iterations, cut by `train.max_seconds`
 where it runs longer). A run's end-to-end seconds are read from its folder: from the spec
 the sweep wrote before starting it to its final checkpoint (start-up, compile, steps and
-the checkpoint; not the mesh or the scoring). Several plan folders (comma-separated): an arm
-(scene, budget) of a later folder replaces the same arm of an earlier one (a re-run of one
-budget after a fix).
+the checkpoint; not the mesh or the scoring). Several plan folders (comma-separated) merge
+seed by seed: a run (scene, budget, seed) of a later folder replaces the same run of an
+earlier one (a re-run after a fix), and seeds that ran in different folders join (two
+chains side by side).
 
 Prints a markdown table (also DIR/frontier.md) and draws DIR/budget_frontier.png: per scene,
 the median Chamfer of the budget runs at each budget (bars: min and max over seeds) and the
@@ -56,6 +57,15 @@ def arms(folder: Path) -> dict[tuple[str, float], list[dict]]:
         if rec is not None:
             out[(rec["scene"], rec["budget"])].append(rec)
     return out
+
+
+def merge(into: dict, later: dict) -> dict:
+    """`into` with `later`'s runs added, a later run replacing the same (scene, budget, seed)."""
+    for key, runs in later.items():
+        kept = {r["seed"]: r for r in into.get(key, [])}
+        kept.update({r["seed"]: r for r in runs})
+        into[key] = [kept[s] for s in sorted(kept)]
+    return into
 
 
 def median(runs: list[dict], key: str) -> float:
@@ -147,7 +157,7 @@ def main() -> None:
     args = ap.parse_args()
     plan = {}
     for folder in str(args.plan).split(","):
-        plan.update(arms(Path(folder)))
+        merge(plan, arms(Path(folder)))
     demo = arms(args.demo)
     text = table(plan, demo)
     print(text)

@@ -2,11 +2,13 @@
 and on every feature's error, with the exact sign test.
 
 Usage:
-    python tools/pair_features.py OFF_DIR ON_DIR [--metric overall|completeness|accuracy]
+    python tools/pair_features.py OFF_DIR[,OFF_DIR2] ON_DIR[,ON_DIR2] [--metric overall|...]
 
 Both sweeps ran the same scenes, samplers, budgets and seeds (so their run folders share
 names, ``OFF_DIR/runs/NAME`` against ``ON_DIR/runs/NAME``) and differ in one setting, e.g.
-``train.error_map.fraction=0.5``. Each run's ``eval.json`` holds its Chamfer report with the
+``train.error_map.fraction=0.5``. Either side may be several folders, comma-separated (two
+chains that ran different seeds side by side); a run name found twice on one side is refused.
+Each run's ``eval.json`` holds its Chamfer report with the
 per-feature errors of a synthetic scene (`neus_l0.evaluation.features`). Prints, per scene
 and feature (and ``total``, ``all pits``, ``all thins``: the pooled kinds, also over every
 scene together): the mean error off and on, their ratio, the pairs the remedy
@@ -39,12 +41,27 @@ def run_errors(eval_json: Path, metric: str) -> tuple[str, dict[str, float]]:
     return scene, {k: float(v) if v is not None else math.nan for k, v in out.items()}
 
 
-def paired_rows(off: Path, on: Path, metric: str) -> list[dict]:
+def run_files(folders: list[Path]) -> dict[str, Path]:
+    """Run name -> its ``eval.json`` over several sweep folders (a name in two is an error)."""
+    out: dict[str, Path] = {}
+    for folder in folders:
+        for path in sorted(folder.glob("runs/*/eval.json")):
+            name = path.parent.name
+            if name in out:
+                raise SystemExit(f"error: run {name} is in both {out[name].parents[2]} and "
+                                 f"{folder}: give each run once per side")
+            out[name] = path
+    return out
+
+
+def paired_rows(off: Path | list[Path], on: Path | list[Path], metric: str) -> list[dict]:
     """One row per (scene, feature): means, ratio, wins, n and the sign test's p."""
+    off_runs = run_files(off if isinstance(off, list) else [off])
+    on_runs = run_files(on if isinstance(on, list) else [on])
     pairs: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
-    for a in sorted(off.glob("runs/*/eval.json")):
-        b = on / "runs" / a.parent.name / "eval.json"
-        if not b.is_file():
+    for run, a in sorted(off_runs.items()):
+        b = on_runs.get(run)
+        if b is None:
             continue
         scene, ea = run_errors(a, metric)
         _, eb = run_errors(b, metric)
@@ -67,12 +84,13 @@ def paired_rows(off: Path, on: Path, metric: str) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("off", type=Path, help="the sweep with the remedy off")
-    ap.add_argument("on", type=Path, help="the sweep with the remedy on")
+    ap.add_argument("off", help="the sweep(s) with the remedy off, comma-separated")
+    ap.add_argument("on", help="the sweep(s) with the remedy on, comma-separated")
     ap.add_argument("--metric", default="overall",
                     choices=("overall", "completeness", "accuracy"))
     args = ap.parse_args()
-    rows = paired_rows(args.off, args.on, args.metric)
+    rows = paired_rows([Path(f) for f in args.off.split(",") if f],
+                       [Path(f) for f in args.on.split(",") if f], args.metric)
     print("| scene | feature | pairs | off | on | on/off | remedy wins | sign test p |")
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:

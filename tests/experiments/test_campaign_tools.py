@@ -1,0 +1,95 @@
+"""`tools/budget_frontier.py` and `tools/pair_features.py` on hand-made bench folders: the
+seed-wise merge of several folders, the equal-time comparison, and the paired sign test
+over folders that two chains filled side by side."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+TOOLS = Path(__file__).resolve().parents[2] / "tools"
+
+
+def _tool(name: str):
+    spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _run(folder: Path, scene: str, budget: float, seed: int, overall: float,
+         wall: float = 0.0, pit: float | None = None, iterations: int = 100) -> Path:
+    """A finished run folder as `neus-l0 bench` leaves it (the fields the tools read)."""
+    run = folder / "runs" / f"{scene}__l0__{budget:g}s__seed{seed}"
+    (run / "checkpoints").mkdir(parents=True)
+    by_kind = {"pit": {"overall": pit}} if pit is not None else {}
+    each = [{"name": "pit A", "overall": pit}] if pit is not None else []
+    (run / "eval.json").write_text(json.dumps({
+        "spec": {"scene_dir": f"/scenes/{scene}", "seed": seed, "budget_s": budget},
+        "row": {"iterations": iterations},
+        "chamfer": {"overall": overall, "features": {"by_kind": by_kind, "each": each}}}))
+    (run / "spec.json").write_text("{}")
+    ckpt = run / "checkpoints" / "ckpt_0000100.pt"
+    ckpt.write_bytes(b"")
+    start = (run / "spec.json").stat().st_mtime
+    os.utime(ckpt, (start + wall, start + wall))
+    return run
+
+
+def test_frontier_merges_folders_seed_by_seed(tmp_path):
+    bf = _tool("budget_frontier")
+    old, a, b = tmp_path / "old", tmp_path / "a", tmp_path / "b"
+    for seed, value in enumerate((1.0, 2.0, 3.0)):
+        _run(old, "demo", 240, seed, value)
+    _run(a, "demo", 240, 0, 0.5)          # a re-run of seed 0 replaces it
+    _run(b, "demo", 240, 2, 0.7)          # another chain re-ran seed 2
+    _run(b, "demo", 1200, 1, 0.4)         # a budget only the new chain ran
+    plan: dict = {}
+    for folder in (old, a, b):
+        bf.merge(plan, bf.arms(folder))
+    assert [r["overall"] for r in plan[("demo", 240.0)]] == [0.5, 2.0, 0.7]
+    assert [r["seed"] for r in plan[("demo", 240.0)]] == [0, 1, 2]
+    assert [r["overall"] for r in plan[("demo", 1200.0)]] == [0.4]
+
+
+def test_frontier_compares_with_the_best_demo_arm_that_fits_the_time(tmp_path):
+    bf = _tool("budget_frontier")
+    plan_dir, demo_dir = tmp_path / "plan", tmp_path / "demo"
+    for seed in range(3):
+        _run(plan_dir, "demo", 120, seed, 1.0 + 0.1 * seed, wall=118)
+        _run(demo_dir, "demo", 60, seed, 1.5, wall=70)       # fits 120 s: compared
+        _run(demo_dir, "demo", 40, seed, 1.9, wall=50)       # fits, scores worse
+        _run(demo_dir, "demo", 600, seed, 0.9, wall=130)     # over 120 s + 5 %: not compared
+    text = bf.table(bf.arms(plan_dir), bf.arms(demo_dir))
+    row = next(line for line in text.splitlines() if "| 120 s |" in line)
+    assert "max_seconds 60:" in row and row.endswith("| 3 of 3 |")
+    assert "1.100 [1.00-1.20]" in row
+
+
+def test_pairs_join_folders_per_side_and_refuse_a_run_given_twice(tmp_path):
+    pf = _tool("pair_features")
+    offa, offb, ona, onb = (tmp_path / n for n in ("offa", "offb", "ona", "onb"))
+    # off 1.0 / on 0.8 on seeds 0-1 (chain a), off 1.0 / on 1.2 on seed 2 (chain b)
+    for seed in (0, 1):
+        _run(offa, "demo", 240, seed, 1.0, pit=2.0)
+        _run(ona, "demo", 240, seed, 0.8, pit=1.0)
+    _run(offb, "demo", 240, 2, 1.0, pit=2.0)
+    _run(onb, "demo", 240, 2, 1.2, pit=1.0)
+    rows = {(r["scene"], r["feature"]): r
+            for r in pf.paired_rows([offa, offb], [ona, onb], "overall")}
+    total = rows[("demo", "total")]
+    assert total["pairs"] == 3 and total["wins"] == "2/3"
+    assert total["on/off"] == pytest.approx((0.8 + 0.8 + 1.2) / 3)
+    assert total["p"] == pytest.approx(1.0)  # 2 of 3: P(X <= 1) * 2 = 1
+    pit = rows[("demo", "all pits")]
+    assert pit["wins"] == "3/3" and pit["on/off"] == pytest.approx(0.5)
+    assert pit["p"] == pytest.approx(0.25)
+    # only one side's folder: the unmatched runs are left out, not paired with anything
+    assert rows[("every scene", "total")]["pairs"] == 3
+    assert pf.paired_rows([offa], [ona, onb], "overall")[0]["pairs"] == 2
+    with pytest.raises(SystemExit, match="in both"):
+        pf.paired_rows([offa, offa], [ona], "overall")
