@@ -93,3 +93,41 @@ def test_pairs_join_folders_per_side_and_refuse_a_run_given_twice(tmp_path):
     assert pf.paired_rows([offa], [ona, onb], "overall")[0]["pairs"] == 2
     with pytest.raises(SystemExit, match="in both"):
         pf.paired_rows([offa, offa], [ona], "overall")
+
+
+def test_the_exact_model_is_the_scenes_surface(tiny_scene):
+    """The ground-truth points (world units, projected onto the true surface) lie on the
+    stand-in's zero level set once taken to the normalised frame."""
+    import numpy as np
+    import torch
+
+    from neus_l0.evaluation.io import load_points
+
+    floor = _tool("extraction_floor")
+    model, scale_mat, name = floor.exact_model(tiny_scene)
+    assert name == "demo"
+    gt = load_points(tiny_scene / "gt_points.ply")
+    normalised = (gt - scale_mat[:3, 3]) / scale_mat[0, 0]
+    values = model.sdf.sdf(torch.as_tensor(normalised, dtype=torch.float64))
+    assert values.shape == (len(gt), 1)
+    assert float(values.abs().max()) * scale_mat[0, 0] < 0.05  # world units
+    inside = model.sdf.sdf(torch.zeros(1, 3, dtype=torch.float64))  # the sphere's centre
+    assert np.isfinite(float(inside))
+
+
+def test_the_floor_falls_with_the_resolution_and_bad_folders_get_one_line(tiny_scene,
+                                                                          tmp_path, capsys):
+    floor = _tool("extraction_floor")
+    out = tmp_path / "floor"
+    assert floor.main([str(tiny_scene), "--resolutions", "24,64", "--density", "2.0",
+                       "--out", str(out)]) == 0
+    rows = json.loads((out / "floor.json").read_text())["rows"]
+    assert [r["resolution"] for r in rows] == [24, 64]
+    assert rows[1]["overall"] < rows[0]["overall"]
+    assert rows[0]["cell"] == pytest.approx(rows[1]["cell"] * 63 / 23)
+    assert rows[0]["features"] and "| 64 |" in (out / "floor.md").read_text()
+    assert (out / "exact_64.ply").is_file()
+    capsys.readouterr()
+    assert floor.main([str(tmp_path / "nowhere")]) == 2
+    assert "not a scene made by `neus-l0 synth`" in capsys.readouterr().err
+    assert floor.main([str(tiny_scene), "--resolutions", "4"]) == 2
