@@ -20,7 +20,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="output mesh: .ply, .obj, .glb, .stl or .off (default RUN/mesh.ply); "
                         "vertex colours (--colors) are kept in .ply and .glb")
     p.add_argument("--clean", action=argparse.BooleanOptionalAction, default=True,
-                   help="keep only the largest connected component (default on)")
+                   help="drop floating specks: connected pieces whose bounding-box diagonal is "
+                        "under 5%% of the main piece's (default on; thin parts cut off by the "
+                        "grid stay)")
     p.add_argument("--colors", action="store_true",
                    help="vertex colours from the colour network (view = -normal)")
     p.add_argument("--texture", action="store_true",
@@ -36,8 +38,8 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="Taubin smoothing iterations, no shrinking (default 0: off)")
     p.add_argument("--min-component", type=float, default=0.0, metavar="FRAC",
                    help="remove connected components whose bounding-box diagonal is below "
-                        "FRAC of the mesh's (e.g. 0.05; default 0: off; with --clean only the "
-                        "largest component is left anyway)")
+                        "FRAC of the mesh's (e.g. 0.1; default 0: off; MeshLab's filter, after "
+                        "--clean)")
     p.add_argument("--close-holes", type=int, default=0, metavar="MAXEDGES",
                    help="close holes with at most MAXEDGES boundary edges (e.g. 100; "
                         "default 0: off)")

@@ -53,7 +53,7 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         resolution: grid cells per axis over the unit sphere's box.
         device: where the networks run.
         checkpoint: a specific checkpoint file; default the newest that loads.
-        clean: keep the largest component (see `extract_mesh`).
+        clean: drop floating specks (see `extract_mesh`).
         method: ``auto``, ``dense`` or ``sparse`` (see `extract_mesh`).
         progress: a tqdm bar on stderr while the SDF is evaluated (`progress_bars`).
 

@@ -59,14 +59,29 @@ def test_marching_cubes_without_surface_is_a_clear_error():
         marching_cubes(np.ones((8, 8, 8), np.float32))
 
 
-def test_clean_keeps_the_largest_component():
-    big = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
-    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+def test_clean_drops_specks_and_keeps_cut_off_thin_parts():
+    """A speck goes; a long thin rod the grid cut off from the body stays (its diagonal is
+    most of the body's, though it has few faces); the fraction sets the line."""
+    body = trimesh.creation.icosphere(subdivisions=4, radius=1.0)  # 5120 faces
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.03)  # 3 % of the body
     speck.apply_translation([3.0, 0, 0])
-    both = trimesh.util.concatenate([big, speck])
-    assert len(clean_mesh(both).faces) == len(big.faces)
-    assert len(clean_mesh(both, keep_largest=False, min_fraction=0.5).faces) == len(big.faces)
-    assert len(clean_mesh(both, keep_largest=False, min_fraction=0.01).faces) == len(both.faces)
+    rod = trimesh.creation.cylinder(radius=0.02, height=1.5, sections=6)
+    rod.apply_translation([0, 0, 2.0])
+    assert len(rod.faces) < 0.01 * len(body.faces)  # a face-count rule would drop it
+    everything = trimesh.util.concatenate([body, speck, rod])
+    kept = clean_mesh(everything)
+    assert len(kept.faces) == len(body.faces) + len(rod.faces)
+    assert kept.bounds[1][2] == pytest.approx(2.75)  # the rod's top
+    assert len(clean_mesh(everything, min_diagonal=0.0).faces) == len(everything.faces)
+    assert len(clean_mesh(everything, min_diagonal=1.0).faces) == len(body.faces)
+    assert clean_mesh(body) is body
+    # the main piece is the one with the most faces (here the speck), kept whatever the
+    # fraction, and the line is drawn at its diagonal: the longer rod stays, a smaller speck goes
+    shrunk = trimesh.creation.icosphere(subdivisions=0, radius=0.005)  # 20 faces
+    shrunk.apply_translation([0.0, 0.0, -2.0])
+    pieces = trimesh.util.concatenate([speck, rod, shrunk])
+    assert len(clean_mesh(pieces, min_diagonal=1.0).faces) == len(speck.faces) + len(rod.faces)
+
 
 
 class _Model(torch.nn.Module):
