@@ -69,11 +69,11 @@ def floor_row(scene_dir: Path, resolution: int, density: float, clean: bool,
               mesh_path: Path) -> dict:
     """Mesh the exact SDF at `resolution`, score it; the row (cell, total, per feature)."""
     from neus_l0.evaluation.score import ScoreSpec, score_mesh
-    from neus_l0.mesh.extract import extract_mesh
+    from neus_l0.mesh.extract import export_mesh, extract_mesh
 
     model, scale_mat, _ = exact_model(scene_dir)
     mesh = extract_mesh(model, scale_mat, resolution=resolution, clean=clean)
-    mesh.export(mesh_path)
+    export_mesh(mesh, mesh_path)  # atomic, like a run's mesh
     report = score_mesh(mesh_path, ScoreSpec(scene=scene_dir, density=density),
                         log=lambda msg: None)
     cell = 2.0 / (resolution - 1) * float(scale_mat[0, 0])
@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(floor_row(args.scene, res, args.density, not args.no_clean,
                                       folder / f"exact_{res}.ply"))
                 print(f"resolution {res}: total {rows[-1]['overall']:.3f}", file=sys.stderr)
-    except (NeusL0Error, ValueError) as exc:
+    except (NeusL0Error, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     text = table(rows)
