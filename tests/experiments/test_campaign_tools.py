@@ -131,3 +131,85 @@ def test_the_floor_falls_with_the_resolution_and_bad_folders_get_one_line(tiny_s
     assert floor.main([str(tmp_path / "nowhere")]) == 2
     assert "not a scene made by `neus-l0 synth`" in capsys.readouterr().err
     assert floor.main([str(tiny_scene), "--resolutions", "4"]) == 2
+
+
+def test_rescoring_meshes_each_run_as_the_bench_does_and_resumes(tiny_scene, tiny_trained,
+                                                                   tmp_path, capsys):
+    """`tools/rescore_bench.py`: a run's new eval.json holds the Chamfer of its checkpoint
+    meshed at the new resolution (the same numbers as meshing and scoring it by hand), keeps
+    the run's training numbers, records where it came from, and a second call skips it."""
+    import shutil
+
+    from neus_l0.evaluation.score import ScoreSpec, score_mesh
+    from neus_l0.mesh.extract import export_mesh
+    from neus_l0.mesh.from_run import mesh_from_run
+
+    rescore = _tool("rescore_bench")
+    sweep, out = tmp_path / "sweep", tmp_path / "new"
+    run = Path(shutil.copytree(tiny_trained, sweep / "runs" / "demo__l0__60s__seed0"))
+    (run / "eval.json").write_text(json.dumps({
+        "spec": {"scene_dir": str(tiny_scene), "eval_density": 2.0, "resolution": 16},
+        "row": {"iterations": 4, "overall": 9.0, "psnr_heldout": 12.5},
+        "chamfer": {"overall": 9.0, "accuracy": 8.0, "completeness": 10.0}}))
+    (sweep / "runs" / "unfinished").mkdir()          # no eval.json: skipped, not an error
+    assert rescore.main([str(sweep), "--out", str(out), "--resolution", "32"]) == 0
+    rec = json.loads((out / "runs" / run.name / "eval.json").read_text())
+    by_hand = export_mesh(mesh_from_run(run, 32, "cpu").mesh, tmp_path / "by_hand.ply")
+    want = score_mesh(by_hand, ScoreSpec(scene=tiny_scene, density=2.0), log=lambda m: None)
+    for key in ("overall", "accuracy", "completeness"):
+        assert rec["chamfer"][key] == pytest.approx(want[key])
+        assert rec["row"][key] == pytest.approx(want[key])
+    assert rec["row"]["iterations"] == 4 and rec["row"]["psnr_heldout"] == 12.5
+    assert rec["spec"]["resolution"] == 32
+    assert rec["rescored"]["old"]["overall"] == 9.0 and rec["rescored"]["old_resolution"] == 16
+    assert (out / "runs" / run.name / "mesh.ply").is_file()
+    assert "unfinished: skipped" in capsys.readouterr().err
+    before = (out / "runs" / run.name / "eval.json").stat().st_mtime_ns
+    assert rescore.main([str(sweep), "--out", str(out), "--resolution", "32"]) == 0
+    assert (out / "runs" / run.name / "eval.json").stat().st_mtime_ns == before
+    assert rescore.main([str(sweep), "--out", str(sweep)]) == 2
+    assert rescore.main([str(tmp_path / "nowhere"), "--out", str(out)]) == 2
+    assert "no runs/ folder" in capsys.readouterr().err
+
+
+def test_accuracy_parts_split_the_distance_and_find_what_hangs_below(tiny_scene, tmp_path):
+    """`tools/accuracy_parts.py`: the parts' shares of the summed distance add up to 1 and
+    their point shares too; the exact surface scores ~0 everywhere; a slab glued under the
+    object (where the scene's cameras, 20-70 degrees above, barely look) is all `under`,
+    and it carries the accuracy's excess."""
+    import numpy as np
+    import trimesh
+
+    from neus_l0.mesh.extract import export_mesh, extract_mesh
+
+    parts = _tool("accuracy_parts")
+    normals = np.array([[0, 0, 1.0], [1.0, 0, 0], [0.6, 0.0, 0.8], [0, 0, 1.0]])
+    points = np.array([[0, 0, 5.0], [0, 0, 5.0], [0, 0, 5.0], [0, 0, -3.0]])
+    assert list(parts.face_parts(normals, points, lowest=0.0)) == ["top", "axis", "other",
+                                                                   "under"]
+    rng = np.random.default_rng(0)
+    dist = rng.uniform(0, 3, 400)
+    names = rng.choice(["top", "axis", "other", "under"], 400)
+    table = parts.part_table(dist, names)
+    assert sum(r["accuracy share"] for r in table) == pytest.approx(1.0)
+    assert sum(r["points"] for r in table) == pytest.approx(1.0)
+    for r in table:
+        assert r["mean"] == pytest.approx(dist[names == r["part"]].mean())
+
+    floor = _tool("extraction_floor")
+    model, scale_mat, _ = floor.exact_model(tiny_scene)
+    exact = extract_mesh(model, scale_mat, resolution=64)
+    clean = parts.analyse(export_mesh(exact, tmp_path / "exact.ply"), tiny_scene, 8, 20000)
+    assert clean["accuracy"] < 1.5 and clean["parts"][3]["points"] < 0.01
+    lo, hi = exact.bounds
+    slab = trimesh.creation.box(extents=(hi[0] - lo[0], hi[1] - lo[1], 20.0))
+    slab.apply_translation(((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2] - 10.0))
+    hanging = trimesh.util.concatenate([exact, slab])
+    rep = parts.analyse(export_mesh(hanging, tmp_path / "hanging.ply"), tiny_scene, 8, 20000)
+    under = rep["parts"][3]
+    assert under["part"] == "under" and under["points"] > 0.01
+    assert under["accuracy share"] > 0.5 and rep["accuracy"] > clean["accuracy"] + 0.5
+    assert rep["accuracy without under"] == pytest.approx(clean["accuracy"], abs=0.5)
+    assert 0.0 <= rep["under"]["seen against the background in a training view"] <= 1.0
+    assert "| under |" in parts.markdown(rep)
+    assert parts.main([str(tmp_path / "none.ply"), str(tiny_scene)]) == 2
