@@ -34,8 +34,10 @@ over the 8 corners of its cell at each level; an entry's traffic is the sum over
 and a label's own share at a level is the mean, over its hits' corner weights, of (the
 label's traffic on the entry) / (the entry's traffic). 1: the entries are the label's
 alone; 0.05: 95 % of the gradient that reaches them comes from surface elsewhere (a hashed
-level's collisions, or a coarse cell shared with the open surface). Surface hits only: the
-samples in front of the surface touch entries too.
+level's collisions, or a coarse cell shared with the open surface). With ``--hash-free K``
+the samples along the rays count too: K uniform samples in each of ``--hash-rays`` random
+pool rays' spans (a step's coarse samples, scaled to the whole pool) enter every entry's
+traffic and no label's own, and each hit counts K (its fine samples, near the surface).
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from neus_l0.bounds.pixel_pool import reachable_pixels
 from neus_l0.bounds.sphere import near_far_from_sphere
@@ -213,10 +216,20 @@ def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float, fraction
     return cb.rows
 
 
+def _corner_weights(enc, x: Tensor) -> tuple[Tensor, Tensor]:
+    """(n, L, 8) table rows and float64 trilinear weights of (n, 3) normalised points."""
+    _, _, frac, idx = enc._cells(x)  # (n, L, 3), (n, L, 8)
+    c = enc.corners.bool()  # (8, 3)
+    w = torch.prod(torch.where(c, frac[:, :, None, :], 1 - frac[:, :, None, :]), -1)
+    return idx, w.double()
+
+
 def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarray,
-                     conf: str, log2_sizes: list[int], chunk: int = 1 << 18) -> list[dict]:
-    """Per (table size, label): the label's own share of the surface traffic on its entries,
-    per level of the SDF's hash grid (see the module docstring).
+                     conf: str, log2_sizes: list[int], free: np.ndarray | None = None,
+                     hit_weight: float = 1.0, free_weight: float = 1.0,
+                     chunk: int = 1 << 18) -> list[dict]:
+    """Per (table size, label): the label's own share of the traffic on its entries, per
+    level of the SDF's hash grid (see the module docstring).
 
     Args:
         points: (N, 3) world first hits of the pool's pixels (labels > 0 only).
@@ -224,27 +237,31 @@ def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarr
         scale_mat: (4, 4) the scene's world -> normalised frame.
         conf: the config whose ``model.sdf.encoding`` is counted.
         log2_sizes: table sizes (log2) to count.
+        free: (M, 3) world sample points along the rays (the coarse samples), counted in
+            every entry's traffic but no label's own; None: surface hits only.
+        hit_weight, free_weight: traffic of one hit and of one free point.
     """
     from neus_l0.data.cameras import to_normalised
     from neus_l0.fields.encodings import HashGridEncoding
 
     x = torch.as_tensor(to_normalised(points, scale_mat), dtype=torch.float32)
+    xf = (torch.as_tensor(to_normalised(free, scale_mat), dtype=torch.float32)
+          if free is not None else torch.zeros(0, 3))
     lab = torch.as_tensor(labels, dtype=torch.int64)
     rows = []
     for log2 in log2_sizes:
         cfg = load_config(conf, [f"model.sdf.encoding.log2_hashmap_size={log2}"])
         enc = HashGridEncoding(cfg.model.sdf.encoding)
-        n_rows = enc.table.shape[0]
-        n_lab = len(LABELS)
+        n_rows, n_lab = enc.table.shape[0], len(LABELS)
         traffic = torch.zeros(n_lab, n_rows, dtype=torch.float64)  # per label, per entry
+        for i in range(0, len(xf), chunk):  # free samples: label 0's row
+            idx, w = _corner_weights(enc, xf[i:i + chunk])
+            traffic[0].index_add_(0, idx.reshape(-1), w.reshape(-1) * free_weight)
         parts = []
         for i in range(0, len(x), chunk):
-            _, _, frac, idx = enc._cells(x[i:i + chunk])  # (n, L, 3), (n, L, 8)
-            c = enc.corners.to(frac.dtype)  # (8, 3)
-            w = torch.prod(torch.where(c.bool(), frac[:, :, None, :], 1 - frac[:, :, None, :]),
-                           -1).double()  # (n, L, 8) trilinear weights
+            idx, w = _corner_weights(enc, x[i:i + chunk])
             key = lab[i:i + chunk, None, None] * n_rows + idx  # (n, L, 8)
-            traffic.view(-1).index_add_(0, key.reshape(-1), w.reshape(-1))
+            traffic.view(-1).index_add_(0, key.reshape(-1), w.reshape(-1) * hit_weight)
             parts.append((idx, w))
         total = traffic.sum(0)  # (n_rows,)
         own = torch.zeros(n_lab, enc.n_levels, dtype=torch.float64)
@@ -265,6 +282,26 @@ def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarr
                 row[f"L{lv} ({res} cells)"] = float(own[k, lv] / mass[k, lv])
             rows.append(row)
     return rows
+
+
+def free_samples(scene, pool, bounds, render_cfg, n_rays: int, per_ray: int,
+                 seed: int = 0) -> tuple[np.ndarray, float]:
+    """(M, 3) world points: `per_ray` uniform samples in the span of `n_rays` random pool
+    rays (as a step's coarse samples lie), and the traffic weight that scales them to the
+    whole pool (pool pixels / rays)."""
+    from neus_l0.bounds.spans import packed_spans
+
+    g = torch.Generator().manual_seed(seed)
+    pick = pool.pixels[torch.randperm(pool.pixels.numel(), generator=g)[:n_rays]]
+    rays = rays_at(scene, pick)
+    span, active = packed_spans(rays["origins"], rays["dirs"], render_cfg, bounds)
+    t = torch.rand(len(pick), per_ray, generator=g)
+    z = span[:, :1] + (span[:, 1:2] - span[:, :1]) * t  # (R, K)
+    pts = rays["origins"][:, None, :] + rays["dirs"][:, None, :] * z[..., None]
+    from neus_l0.data.cameras import to_world
+
+    pts = pts[active].reshape(-1, 3).double().numpy()
+    return to_world(pts, scene.scale_mat), pool.pixels.numel() / max(1, int(active.sum()))
 
 
 def _markdown(rows: list[dict]) -> str:
@@ -295,6 +332,11 @@ def main() -> None:
     ap.add_argument("--hash", default="",
                     help="table sizes (log2, comma-separated) whose entries' own share of "
                          "surface traffic to count per label, e.g. 15,19 (empty: none)")
+    ap.add_argument("--hash-free", type=int, default=0,
+                    help="with --hash: also count K uniform samples per ray in its span (a "
+                         "step's coarse samples; each hit then counts K, its fine samples)")
+    ap.add_argument("--hash-rays", type=int, default=100000,
+                    help="pool rays whose span samples --hash-free counts")
     args = ap.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(args.conf)
@@ -318,9 +360,14 @@ def main() -> None:
         flat = pts.reshape(-1, 3)[pool.pixels.numpy()]
         hit = pool_labels > 0
         scale_mat = np.load(args.scene / "cameras_sphere.npz")["scale_mat_0"]
+        free, free_w = (free_samples(scene, pool, bounds, cfg.render, args.hash_rays,
+                                     args.hash_free) if args.hash_free else (None, 1.0))
         shares = hash_share_table(flat[hit], pool_labels[hit], scale_mat, args.conf,
-                                  [int(v) for v in args.hash.split(",") if v.strip()])
-        print(f"\nown share of the surface traffic on each label's table entries\n"
+                                  [int(v) for v in args.hash.split(",") if v.strip()], free,
+                                  hit_weight=max(1, args.hash_free), free_weight=free_w)
+        what = (f"surface and {args.hash_free} span samples a ray" if args.hash_free
+                else "surface")
+        print(f"\nown share of the {what} traffic on each label's table entries\n"
               f"{_markdown(shares)}")
     drawn = []
     if args.train_seconds > 0:
