@@ -213,3 +213,33 @@ def test_accuracy_parts_split_the_distance_and_find_what_hangs_below(tiny_scene,
     assert 0.0 <= rep["under"]["seen against the background in a training view"] <= 1.0
     assert "| under |" in parts.markdown(rep)
     assert parts.main([str(tmp_path / "none.ply"), str(tiny_scene)]) == 2
+
+
+def test_hash_share_is_one_for_a_lone_label_and_falls_as_the_closed_form():
+    """`diagnose_pits.hash_share_table`: a label alone in its cells owns all their traffic
+    at every level of a collision-free table; points of another label at the very same spot
+    take a share n_b / (n_a + n_b) of it; free samples there, weighted, as w m / (n + w m)."""
+    import numpy as np
+
+    diag = _tool("diagnose_pits")
+    eye = np.eye(4)
+    far_a = np.array([0.31, 0.29, 0.27])   # normalised frame = world (scale_mat = I)
+    far_b = np.array([-0.52, -0.48, -0.33])
+    pts = np.concatenate([np.tile(far_a, (10, 1)), np.tile(far_b, (1000, 1))])
+    labels = np.array([3] * 10 + [1] * 1000)
+    rows = diag.hash_share_table(pts, labels, eye, "demo", [22])
+    floor = next(r for r in rows if r["label"] == "pit floor")
+    levels = [v for k, v in floor.items() if k.startswith("L") and "cells" in k]
+    assert len(levels) == 6 and all(v == pytest.approx(1.0) for v in levels)
+
+    shared = np.concatenate([pts, np.tile(far_a, (30, 1))])
+    rows = diag.hash_share_table(shared, np.concatenate([labels, [4] * 30]), eye, "demo", [22])
+    floor = next(r for r in rows if r["label"] == "pit floor")
+    rods = next(r for r in rows if r["label"] == "rods")
+    assert floor["L5 (64 cells)"] == pytest.approx(10 / 40)
+    assert rods["L0 (16 cells)"] == pytest.approx(30 / 40)
+
+    rows = diag.hash_share_table(pts, labels, eye, "demo", [22], np.tile(far_a, (5, 1)),
+                                 hit_weight=2.0, free_weight=3.0)
+    floor = next(r for r in rows if r["label"] == "pit floor")
+    assert floor["L3 (36 cells)"] == pytest.approx(20 / (20 + 15))
