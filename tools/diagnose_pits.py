@@ -234,7 +234,7 @@ def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarr
     Args:
         points: (N, 3) world first hits of the pool's pixels (labels > 0 only).
         labels: (N,) int `LABELS` indices of `points`.
-        scale_mat: (4, 4) the scene's world -> normalised frame.
+        scale_mat: (4, 4) the scene's normalised -> world matrix (``scale_mat_0``).
         conf: the config whose ``model.sdf.encoding`` is counted.
         log2_sizes: table sizes (log2) to count.
         free: (M, 3) world sample points along the rays (the coarse samples), counted in
@@ -290,6 +290,7 @@ def free_samples(scene, pool, bounds, render_cfg, n_rays: int, per_ray: int,
     rays (as a step's coarse samples lie), and the traffic weight that scales them to the
     whole pool (pool pixels / rays)."""
     from neus_l0.bounds.spans import packed_spans
+    from neus_l0.data.cameras import to_world
 
     g = torch.Generator().manual_seed(seed)
     pick = pool.pixels[torch.randperm(pool.pixels.numel(), generator=g)[:n_rays]]
@@ -298,8 +299,6 @@ def free_samples(scene, pool, bounds, render_cfg, n_rays: int, per_ray: int,
     t = torch.rand(len(pick), per_ray, generator=g)
     z = span[:, :1] + (span[:, 1:2] - span[:, :1]) * t  # (R, K)
     pts = rays["origins"][:, None, :] + rays["dirs"][:, None, :] * z[..., None]
-    from neus_l0.data.cameras import to_world
-
     pts = pts[active].reshape(-1, 3).double().numpy()
     return to_world(pts, scene.scale_mat), pool.pixels.numel() / max(1, int(active.sum()))
 
@@ -359,7 +358,7 @@ def main() -> None:
     if args.hash:
         flat = pts.reshape(-1, 3)[pool.pixels.numpy()]
         hit = pool_labels > 0
-        scale_mat = np.load(args.scene / "cameras_sphere.npz")["scale_mat_0"]
+        scale_mat = scene.scale_mat
         free, free_w = (free_samples(scene, pool, bounds, cfg.render, args.hash_rays,
                                      args.hash_free) if args.hash_free else (None, 1.0))
         shares = hash_share_table(flat[hit], pool_labels[hit], scale_mat, args.conf,
