@@ -58,6 +58,20 @@ def part_table(dist: np.ndarray, part: np.ndarray) -> list[dict]:
     return rows
 
 
+def band_table(dist: np.ndarray) -> list[dict]:
+    """Per distance band of `BANDS`: share of points and of the summed distance (pure). The
+    last band is closed: it holds the points truncated at the score's 20 units."""
+    total = float(dist.sum()) or 1.0
+    rows = []
+    for k, (lo, hi) in enumerate(zip(BANDS[:-1], BANDS[1:])):
+        last = k == len(BANDS) - 2
+        sel = (dist >= lo) & ((dist <= hi) if last else (dist < hi))
+        rows.append({"band": f"[{lo:g}, {hi:g}{']' if last else ')'}",
+                     "points": float(sel.mean()) if len(sel) else 0.0,
+                     "accuracy share": float(dist[sel].sum() / total)})
+    return rows
+
+
 def under_views(points: np.ndarray, scene_dir: Path, holdout: int) -> dict:
     """How the training views see (M, 3) world points: against the background in how many,
     and how many pixels from the mask's edge there."""
@@ -115,9 +129,7 @@ def analyse(mesh_path: Path, scene_dir: Path, holdout: int, n_points: int) -> di
     dist = np.where(np.isfinite(dist), dist, spec.max_dist)
     lowest = float(truth.points[:, 2].min())
     part = face_parts(normals, pts, lowest)
-    bands = [{"band": f"[{lo:g}, {hi:g})", "points": float(((dist >= lo) & (dist < hi)).mean()),
-              "accuracy share": float(dist[(dist >= lo) & (dist < hi)].sum() / dist.sum())}
-             for lo, hi in zip(BANDS[:-1], BANDS[1:])]
+    bands = band_table(dist)
     under = part == "under"
     return {"mesh": str(mesh_path), "scene": str(scene_dir), "scored points": int(len(pts)),
             "accuracy": float(dist.mean()),

@@ -224,10 +224,29 @@ def _corner_weights(enc, x: Tensor) -> tuple[Tensor, Tensor]:
     return idx, w.double()
 
 
+#: Points per chunk of the hash-share count.
+HASH_CHUNK = 1 << 18
+
+
+def _entry_traffic(enc, x: Tensor, lab: Tensor, xf: Tensor, hit_weight: float,
+                   free_weight: float) -> Tensor:
+    """(len(LABELS), table rows) float64: each label's traffic on every entry (label 0's row
+    also takes the free samples `xf`)."""
+    traffic = torch.zeros(len(LABELS), enc.table.shape[0], dtype=torch.float64)
+    for i in range(0, len(xf), HASH_CHUNK):
+        idx, w = _corner_weights(enc, xf[i:i + HASH_CHUNK])
+        traffic[0].index_add_(0, idx.reshape(-1), w.reshape(-1) * free_weight)
+    rows = traffic.shape[1]
+    for i in range(0, len(x), HASH_CHUNK):
+        idx, w = _corner_weights(enc, x[i:i + HASH_CHUNK])
+        key = lab[i:i + HASH_CHUNK, None, None] * rows + idx  # (n, L, 8)
+        traffic.view(-1).index_add_(0, key.reshape(-1), w.reshape(-1) * hit_weight)
+    return traffic
+
+
 def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarray,
                      conf: str, log2_sizes: list[int], free: np.ndarray | None = None,
-                     hit_weight: float = 1.0, free_weight: float = 1.0,
-                     chunk: int = 1 << 18) -> list[dict]:
+                     hit_weight: float = 1.0, free_weight: float = 1.0) -> list[dict]:
     """Per (table size, label): the label's own share of the traffic on its entries, per
     level of the SDF's hash grid (see the module docstring).
 
@@ -252,25 +271,14 @@ def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarr
     for log2 in log2_sizes:
         cfg = load_config(conf, [f"model.sdf.encoding.log2_hashmap_size={log2}"])
         enc = HashGridEncoding(cfg.model.sdf.encoding)
-        n_rows, n_lab = enc.table.shape[0], len(LABELS)
-        traffic = torch.zeros(n_lab, n_rows, dtype=torch.float64)  # per label, per entry
-        for i in range(0, len(xf), chunk):  # free samples: label 0's row
-            idx, w = _corner_weights(enc, xf[i:i + chunk])
-            traffic[0].index_add_(0, idx.reshape(-1), w.reshape(-1) * free_weight)
-        parts = []
-        for i in range(0, len(x), chunk):
-            idx, w = _corner_weights(enc, x[i:i + chunk])
-            key = lab[i:i + chunk, None, None] * n_rows + idx  # (n, L, 8)
-            traffic.view(-1).index_add_(0, key.reshape(-1), w.reshape(-1) * hit_weight)
-            parts.append((idx, w))
-        total = traffic.sum(0)  # (n_rows,)
-        own = torch.zeros(n_lab, enc.n_levels, dtype=torch.float64)
-        mass = torch.zeros(n_lab, enc.n_levels, dtype=torch.float64)
-        start = 0
-        for idx, w in parts:
-            lab_c = lab[start:start + len(idx)]
-            start += len(idx)
-            share = traffic[lab_c[:, None, None], idx] / total[idx].clamp_min(1e-30)
+        traffic = _entry_traffic(enc, x, lab, xf, hit_weight, free_weight)
+        total = traffic.sum(0).clamp_min(1e-30)  # (table rows,)
+        own = torch.zeros(len(LABELS), enc.n_levels, dtype=torch.float64)
+        mass = torch.zeros_like(own)
+        for i in range(0, len(x), HASH_CHUNK):  # recomputed: no per-hit tensors kept
+            idx, w = _corner_weights(enc, x[i:i + HASH_CHUNK])
+            lab_c = lab[i:i + HASH_CHUNK]
+            share = traffic[lab_c[:, None, None], idx] / total[idx]
             own.index_add_(0, lab_c, (w * share).sum(-1))
             mass.index_add_(0, lab_c, w.sum(-1))
         for k, name in enumerate(LABELS):
@@ -303,6 +311,17 @@ def free_samples(scene, pool, bounds, render_cfg, n_rays: int, per_ray: int,
     return to_world(pts, scene.scale_mat), pool.pixels.numel() / max(1, int(active.sum()))
 
 
+def _log2_list(text: str) -> list[int]:
+    """``--hash``'s value: comma-separated table sizes (log2), each in 4..30."""
+    try:
+        sizes = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give integers, e.g. 15,19") from None
+    if any(not 4 <= v <= 30 for v in sizes):
+        raise argparse.ArgumentTypeError(f"{text!r}: table sizes are log2 values in 4..30")
+    return sizes
+
+
 def _markdown(rows: list[dict]) -> str:
     keys = list(rows[0])
 
@@ -328,7 +347,7 @@ def main() -> None:
     ap.add_argument("--tile", type=int, default=8, help="train.error_map.tile")
     ap.add_argument("--signal", default="colour", choices=["colour", "depth"],
                     help="train.error_map.signal")
-    ap.add_argument("--hash", default="",
+    ap.add_argument("--hash", type=_log2_list, default=[],
                     help="table sizes (log2, comma-separated) whose entries' own share of "
                          "surface traffic to count per label, e.g. 15,19 (empty: none)")
     ap.add_argument("--hash-free", type=int, default=0,
@@ -362,7 +381,7 @@ def main() -> None:
         free, free_w = (free_samples(scene, pool, bounds, cfg.render, args.hash_rays,
                                      args.hash_free) if args.hash_free else (None, 1.0))
         shares = hash_share_table(flat[hit], pool_labels[hit], scale_mat, args.conf,
-                                  [int(v) for v in args.hash.split(",") if v.strip()], free,
+                                  args.hash, free,
                                   hit_weight=max(1, args.hash_free), free_weight=free_w)
         what = (f"surface and {args.hash_free} span samples a ray" if args.hash_free
                 else "surface")

@@ -7,13 +7,14 @@ Usage:
 SCENE_DIR is a scene made by ``neus-l0 synth NAME`` from a built-in analytic shape
 (``scene.json``'s ``source``: pits-and-thin, pits-deep, cup, demo, ...). Its exact SDF,
 placed where the scene put it and taken to the normalised frame (``cameras_sphere.npz``'s
-``scale_mat_0``), goes
-through the path a trained SDF takes (`neus_l0.mesh.extract.extract_mesh`: the grid over
-``[-1, 1]^3`` at each resolution, marching cubes, the largest component unless
-``--no-clean``) and through the scoring a run gets (`neus_l0.evaluation.score.score_mesh` at
-``--density``, per feature). No network is trained: what error remains is the grid's and the
-scoring's, the floor under every run scored at that resolution (issue #35: is a thin rod
-missing from training, or from a grid whose cell is wider than the rod?).
+``scale_mat_0``), goes through the path a trained SDF takes
+(`neus_l0.mesh.extract.extract_mesh`: the grid over ``[-1, 1]^3`` at each resolution,
+marching cubes, `clean_mesh` unless ``--no-clean``: pieces under 5 % of the main piece's
+diagonal dropped) and through the scoring a run gets
+(`neus_l0.evaluation.score.score_mesh` at ``--density``, per feature). No network is
+trained: what error remains is the grid's and the scoring's, the floor under every run
+scored at that resolution (issue #35: is a thin rod missing from training, or from a grid
+whose cell is wider than the rod?).
 
 Prints one markdown row per resolution (cell size in world units, total Chamfer, each
 feature's overall and completeness); with ``--out``, writes ``floor.md``, ``floor.json`` and
@@ -108,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--density", type=float, default=0.5,
                     help="Chamfer sampling density, world units (the CPU bench's 0.5)")
     ap.add_argument("--no-clean", action="store_true",
-                    help="keep every component (runs keep the largest)")
+                    help="keep every piece (runs drop pieces under 5 %% of the main "
+                         "one's diagonal)")
     ap.add_argument("--out", type=Path, default=None, help="folder for floor.md / .json")
     args = ap.parse_args(argv)
     try:

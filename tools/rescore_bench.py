@@ -51,6 +51,18 @@ def rescored_record(old: dict, report: dict, resolution: int, clean: bool, sourc
     return rec
 
 
+#: What this tool writes into a run's folder under --out (anything else there is not ours).
+WRITES = ("mesh.ply", "eval.json")
+
+
+def foreign_files(folder: Path) -> list[str]:
+    """Names in `folder` this tool did not write (its atomic writes' temporaries aside)."""
+    if not folder.exists():
+        return []
+    return sorted(p.name for p in folder.iterdir()
+                  if p.name not in WRITES and not p.name.startswith((".mesh.ply.", ".eval.json.")))
+
+
 def rescore_run(run_dir: Path, out_dir: Path, resolution: int, density: float | None,
                 clean: bool) -> dict:
     """Mesh and score one run; write ``out_dir/eval.json`` and ``out_dir/mesh.ply``."""
@@ -67,6 +79,10 @@ def rescore_run(run_dir: Path, out_dir: Path, resolution: int, density: float | 
         raise NeusL0Error(f"{eval_path}: not a bench run's eval.json ({exc})") from exc
     if not (scene_dir / "gt_points.ply").is_file():
         raise NeusL0Error(f"{eval_path}: its scene {scene_dir} has no gt_points.ply")
+    if foreign_files(out_dir):
+        raise NeusL0Error(f"{out_dir}: holds files this tool did not write "
+                          f"({', '.join(foreign_files(out_dir)[:3])}): not written over (is --out "
+                          "a bench sweep?)")
     t0 = time.monotonic()
     mesh = mesh_from_run(run_dir, resolution, "cpu", clean=clean).mesh
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -92,8 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {args.sweep}: no runs/ folder (not a `neus-l0 bench` sweep)",
               file=sys.stderr)
         return 2
-    if args.out.resolve() == args.sweep.resolve():
-        print("error: --out must differ from the sweep (its eval.json files are kept)",
+    if args.out.resolve().is_relative_to(args.sweep.resolve()):
+        print("error: --out must lie outside the sweep (its eval.json files are kept)",
               file=sys.stderr)
         return 2
     if args.resolution < 8:

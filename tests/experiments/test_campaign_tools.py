@@ -168,6 +168,15 @@ def test_rescoring_meshes_each_run_as_the_bench_does_and_resumes(tiny_scene, tin
     assert rescore.main([str(sweep), "--out", str(out), "--resolution", "32"]) == 0
     assert (out / "runs" / run.name / "eval.json").stat().st_mtime_ns == before
     assert rescore.main([str(sweep), "--out", str(sweep)]) == 2
+    assert rescore.main([str(sweep), "--out", str(sweep / "runs")]) == 2
+    # --out pointed at another sweep: a run folder holding a checkpoint is not written over
+    other = tmp_path / "other"
+    (other / "runs" / run.name / "checkpoints").mkdir(parents=True)
+    (other / "runs" / run.name / "mesh.ply").write_bytes(b"theirs")
+    capsys.readouterr()
+    assert rescore.main([str(sweep), "--out", str(other)]) == 1
+    assert "holds files this tool did not write" in capsys.readouterr().err
+    assert (other / "runs" / run.name / "mesh.ply").read_bytes() == b"theirs"
     assert rescore.main([str(tmp_path / "nowhere"), "--out", str(out)]) == 2
     assert "no runs/ folder" in capsys.readouterr().err
 
@@ -195,6 +204,11 @@ def test_accuracy_parts_split_the_distance_and_find_what_hangs_below(tiny_scene,
     assert sum(r["points"] for r in table) == pytest.approx(1.0)
     for r in table:
         assert r["mean"] == pytest.approx(dist[names == r["part"]].mean())
+    capped = np.concatenate([dist, [20.0, 20.0]])  # points truncated at the score's cap
+    bands = parts.band_table(capped)
+    assert sum(b["points"] for b in bands) == pytest.approx(1.0)
+    assert sum(b["accuracy share"] for b in bands) == pytest.approx(1.0)
+    assert bands[-1]["accuracy share"] == pytest.approx(40.0 / capped.sum())
 
     floor = _tool("extraction_floor")
     model, scale_mat, _ = floor.exact_model(tiny_scene)
