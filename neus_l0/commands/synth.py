@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-BUILTINS = ("demo", "pits-and-thin", "pits-deep", "cup")
+BUILTINS = ("demo", "pits-and-thin", "pits-deep", "cup", "well")
 
 
 def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentParser:

@@ -24,6 +24,7 @@ from neus_l0.config.schema import (
     HullConfig,
     L0Config,
     OccupancyConfig,
+    PhotoConfig,
     PointBoundConfig,
     RenderConfig,
     SamplerConfig,
@@ -138,6 +139,14 @@ RULES: dict[tuple[type, str], Range] = {
     (ErrorMapConfig, "fraction"): Range(0, 1, hi_open=True),
     (ErrorMapConfig, "decay"): Range(0, 1, lo_open=True),
     (ErrorMapConfig, "tile"): at_least(1),
+    (PhotoConfig, "weight"): at_least(0, "0: off"),
+    (PhotoConfig, "sources"): at_least(1),
+    (PhotoConfig, "best"): at_least(1),
+    (PhotoConfig, "patch"): at_least(1),
+    (PhotoConfig, "stride"): at_least(1),
+    (PhotoConfig, "max_sdf"): positive(),
+    (PhotoConfig, "occlusion_samples"): at_least(0, "0: no occlusion test"),
+    (PhotoConfig, "planar_sdf"): at_least(0, "0: no test"),
 }
 
 
@@ -212,6 +221,13 @@ def _check_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]) -
                           "sampler.l0.masses=interpolant")
 
 
+def _check_photo(obj: PhotoConfig, bad: Callable[[str, str], ConfigError]) -> None:
+    if obj.patch % 2 == 0:
+        raise bad("patch", f"{obj.patch}: must be odd (the patch is centred on the ray's pixel)")
+    if obj.best > obj.sources:
+        raise bad("best", f"{obj.best}: at most train.photo.sources ({obj.sources})")
+
+
 #: The rules that tie several keys of one config class together.
 JOINT_RULES: dict[type, Callable[[Any, Callable[[str, str], ConfigError]], None]] = {
     EncodingConfig: _check_encoding,
@@ -220,6 +236,7 @@ JOINT_RULES: dict[type, Callable[[Any, Callable[[str, str], ConfigError]], None]
     RenderConfig: _check_render,
     OccupancyConfig: _check_occupancy,
     SamplerConfig: _check_sampler,
+    PhotoConfig: _check_photo,
 }
 
 

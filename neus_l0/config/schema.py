@@ -374,6 +374,39 @@ class ErrorMapConfig:
 
 
 @dataclass
+class PhotoConfig:
+    """Multi-view photometric consistency of the rendered surface (`neus_l0.train.photometric`):
+    a patch around each ray's pixel, carried by the plane of its rendered surface into the
+    nearest training views, scored by normalised cross-correlation (Geo-NeuS's term). Off by
+    default."""
+
+    weight: float = 0.0
+    """Weight of the term, (1 - NCC) / 2 averaged over each ray's `best` sources (0: off)."""
+    sources: int = 4
+    """Source views per view: the nearest by the angle seen from the object's centre."""
+    best: int = 2
+    """How many of a ray's sources count: those that agree best (the others may not see
+    the point)."""
+    patch: int = 3
+    """Side of the square patch in samples (odd; 3 measured best at 400x300 on pits-deep
+    against 5 and 7, which straddle narrow pits' rims)."""
+    stride: int = 1
+    """Pixels between the patch's samples."""
+    max_sdf: float = 0.02
+    """Rays whose rendered point lies farther than this from the zero level (normalised
+    frame) do not count: their depth mixes two surfaces."""
+    occlusion_samples: int = 0
+    """SDF samples on the segment from a ray's surface point to each source camera; a
+    source the SDF blocks does not count (0: no test; a cavity's floor is seen by few
+    views, and its nearest sources often look at the wall instead)."""
+    planar_sdf: float = 0.0
+    """With > 0, a ray whose patch's points on the plane of its surface lie farther than
+    this from the zero level (normalised frame) does not count: its patch straddles a rim
+    (a narrow pit's opening), where the plane the patch is carried by is not there
+    (0: no test)."""
+
+
+@dataclass
 class TrainConfig:
     """Optimisation, losses, logging and checkpoints."""
 
@@ -457,6 +490,8 @@ class TrainConfig:
     error_map: ErrorMapConfig = field(default_factory=ErrorMapConfig)
     """Error-map ray sampling (off by default); its draw table is rebuilt every
     `log_every` iterations."""
+    photo: PhotoConfig = field(default_factory=PhotoConfig)
+    """Multi-view photometric consistency (off by default)."""
     eikonal_fraction: float = 1.0
     """Fraction of the samples (drawn at random each step) that the Eikonal term averages
     over; 1: all samples within radius 1.2 (NeuS)."""

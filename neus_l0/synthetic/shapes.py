@@ -337,11 +337,56 @@ def cup_shape() -> BuiltinShape:
                         "on its floor, a handle (torus tube r 5) and 4 dimples r 9")
 
 
+#: The well's square shaft: half width and depth (deeper than wide), and the rods on its
+#: floor: (x, y) offsets from the axis, radius, height.
+WELL_SHAFT = (20.0, 50.0)
+WELL_RODS = (((-9.0, 9.0), 2.0, 30.0), ((9.0, -9.0), 4.0, 30.0))
+
+
+def well_shape() -> BuiltinShape:
+    """A second held-out object for the pits issue (#35; added after the photometric term
+    was tuned, no setting was chosen on it): a tall block with a square shaft deeper than
+    it is wide, two thin rods standing on the shaft's floor, a thin slanted bar over the top
+    (fixed at one end) and two narrow round pits."""
+    half, top = 60.0, 45.0
+    body = Box((0.0, 0.0, 0.0), (half, half, top), rounding=4.0)
+    w, depth = WELL_SHAFT
+    cx, cy = -15.0, -10.0
+    floor = top - depth
+    shaft = Box((cx, cy, floor + (depth + 10.0) / 2), (w, w, (depth + 10.0) / 2))
+    feats = [{"kind": "pit", "name": f"shaft w{2 * w:g} d{depth:g}",
+              "center": [cx, cy, top - depth / 2], "radius": float(np.hypot(w, depth / 2)),
+              "axis": [0.0, 0.0, 1.0]},
+             {"kind": "pit", "name": "shaft floor", "center": [cx, cy, floor], "radius": 6.0,
+              "axis": [0.0, 0.0, 1.0]}]
+    cutters = [shaft]
+    for x, y, r, d in ((35.0, 35.0, 4.0, 20.0), (35.0, -30.0, 8.0, 16.0)):
+        c, f = _pit(x, y, top, r, d, name=f"pit r{r:g} d{d:g}")
+        f["radius"] = float(np.hypot(r, d / 2))  # the ball holds the wall, floor and rim
+        cutters.append(c)
+        feats.append(f)
+    parts = [Difference(body, tuple(cutters))]
+    for (dx, dy), rr, h in WELL_RODS:
+        rod, f = _rod(cx + dx, cy + dy, floor, h, rr, name=f"shaft rod r{rr:g}")
+        parts.append(rod)
+        feats.append(f)
+    bar = Capsule((-55.0, 45.0, top), (45.0, 45.0, top + 18.0), 3.0)
+    parts.append(bar)
+    feats.append({"kind": "thin", "name": "bar r3", "center": [-5.0, 45.0, top + 9.0],
+                  "radius": 51.0, "axis": None})
+    return BuiltinShape("well", Union(tuple(parts)), feats,
+                        ((-62.0, -62.0, -47.0), (62.0, 62.0, 67.0)),
+                        "block 120x120x90 with a square shaft 40 wide and 50 deep, rods r 2/4 "
+                        "(30 tall) on its floor, a bar r 3 across the top, pits r 4 d 20 and "
+                        "r 8 d 16")
+
+
 BUILTIN_SHAPES: dict[str, Callable[[], BuiltinShape]] = {
     "demo": demo_shape,
     "pits-and-thin": pits_and_thin_shape,
     "pits-deep": functools.partial(pits_and_thin_shape, deep_pit=True),
     "cup": cup_shape,
+    "well": well_shape,
 }
 
 

@@ -73,6 +73,7 @@ from neus_l0.train.callbacks import (
 from neus_l0.train.compile import compiled_step
 from neus_l0.train.compile_auto import resolve_compile
 from neus_l0.train.early_stop import EarlyStop
+from neus_l0.train.photometric import PhotoContext
 from neus_l0.train.preflight import (
     check_same_scene,
     check_step_memory,
@@ -221,6 +222,9 @@ def _static_setup(scene: Scene, cfg: Config, run_dir: Path) -> StepSetup:
     setup.pool = with_error_map(reachable_pixels(scene, cfg.render, setup.bounds,
                                                  background=cfg.render.n_outside > 0),
                                 scene, cfg)
+    ph = cfg.train.photo
+    if ph.weight > 0:
+        setup.photo = PhotoContext.from_scene(scene, ph.sources, ph.patch, ph.stride, ph.best)
     return setup
 
 

@@ -12,7 +12,8 @@ from torch import Tensor
 from neus_l0.config.schema import TrainConfig
 
 #: The names of what `neus_loss` returns, in the order the step reports them.
-LOSS_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "curvature_loss", "psnr")
+LOSS_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "curvature_loss", "photo_loss",
+              "psnr")
 
 if TYPE_CHECKING:
     from neus_l0.render.volume import RenderOutput
@@ -145,9 +146,9 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
               mask_scale: float | Tensor = 1.0,
               eikonal_idx: Tensor | None = None, ray_weight: Tensor | None = None,
               foreground: float = 1.0,
-              curvature_term: Tensor | None = None) -> dict[str, Tensor]:
+              terms: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
     """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE
-    (+ curvature_weight * curvature).
+    (+ curvature_weight * curvature + photo.weight * photometric consistency).
 
     Args:
         out: `neus_l0.render.volume.render_rays` output.
@@ -166,12 +167,14 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
             mask term the weighted mean of the rays' BCE, so both keep the pool's
             expectation; the Eikonal term (over samples) is not weighted. None: uniform.
         foreground: the pool's share of foreground pixels (with `ray_weight`).
-        curvature_term: () the `curvature` term computed by the caller (it needs the
-            network), added with ``cfg.curvature_weight``; None: 0.
+        terms: the terms the caller computes (they need the network), () each:
+            ``curvature`` (`curvature`), added with ``cfg.curvature_weight``, and ``photo``
+            (`neus_l0.train.photometric.photometric_term`), added with
+            ``cfg.photo.weight``; a missing one is 0.
 
     Returns:
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
-        ``curvature_loss``, ``psnr``.
+        ``curvature_loss``, ``photo_loss``, ``psnr``.
     """
     if ray_weight is None:
         color = color_l1(out.color, target_rgb, mask)
@@ -187,16 +190,20 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
     else:
         mloss = torch.zeros_like(color)
     loss = color + cfg.igr_weight * eik + cfg.mask_weight * mask_scale * mloss
-    if curvature_term is not None:
+    terms = terms or {}
+    curvature_term = terms.get("curvature", torch.zeros_like(color))
+    photo_term = terms.get("photo", torch.zeros_like(color))
+    if "curvature" in terms:
         loss = loss + cfg.curvature_weight * curvature_term
-    else:
-        curvature_term = torch.zeros_like(color)
+    if "photo" in terms:
+        loss = loss + cfg.photo.weight * photo_term
     return {  # keys: LOSS_NAMES
         "loss": loss,
         "color_loss": color,
         "eikonal_loss": eik,
         "mask_loss": mloss,
         "curvature_loss": curvature_term,
+        "photo_loss": photo_term,
         "psnr": masked_psnr(out.color.detach(), target_rgb, mask),
     }
 

@@ -34,6 +34,7 @@ from neus_l0.train.losses import (
     neus_loss,
     ray_errors,
 )
+from neus_l0.train.photometric import PhotoContext, PhotoRays, photometric_term
 from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 
 #: A step's metrics, in the order of `render_and_loss`'s metrics tensor: the losses, then
@@ -157,6 +158,8 @@ class StepInputs:
         ray_weight: (B,) their importance weights 1 / (P p) (None: uniform draws).
         foreground: the pool's share of foreground pixels (with `ray_weight`).
         curvature_idx: (k,) the samples of the curvature term (None: the term is off).
+        photo: the run's `PhotoContext` (None: the photometric term is off); view: (B,) the
+            rays' views and xy: (B, 2) their pixels (with `photo`).
     """
 
     origins: Tensor
@@ -172,6 +175,9 @@ class StepInputs:
     ray_weight: Tensor | None = None
     foreground: float = 1.0
     curvature_idx: Tensor | None = None
+    photo: PhotoContext | None = None
+    view: Tensor | None = None
+    xy: Tensor | None = None
 
 
 def _draw_pool(pool: PixelPool, n_rays: int, generator: torch.Generator,
@@ -184,8 +190,10 @@ def _draw_pool(pool: PixelPool, n_rays: int, generator: torch.Generator,
 
 
 def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
-                     generator: torch.Generator, pool: PixelPool | None) -> StepInputs:
-    """Draw one step's rays and random numbers (`StepInputs`), in a fixed order."""
+                     generator: torch.Generator, pool: PixelPool | None,
+                     photo: PhotoContext | None = None) -> StepInputs:
+    """Draw one step's rays and random numbers (`StepInputs`), in a fixed order (`photo`:
+    the photometric term's context, passed on with the rays' views and pixels)."""
     span = pick = weight = None
     if pool is None:
         batch, mask_scale = random_rays(scene, n_rays, generator), 1.0
@@ -209,9 +217,11 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
               torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
                            device=scene.device))
     emap = pool.error_map if pool is not None else None
+    on = photo is not None
     return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
                       anneal, mask_scale, span, pick if emap is not None else None, weight,
-                      emap.foreground if emap is not None else 1.0, curv_idx)
+                      emap.foreground if emap is not None else 1.0, curv_idx, photo,
+                      batch["view"] if on else None, batch["xy"] if on else None)
 
 
 def curvature_at_samples(model: NeuSModel, origins: Tensor, dirs: Tensor, out: RenderOutput,
@@ -233,6 +243,26 @@ def curvature_at_samples(model: NeuSModel, origins: Tensor, dirs: Tensor, out: R
     return curvature(lap, out.eikonal_mask.reshape(-1)[idx])
 
 
+def photo_at_rays(model: NeuSModel, inputs: StepInputs, out: RenderOutput, cfg: Config
+                  ) -> Tensor:
+    """The photometric term (`neus_l0.train.photometric`) on the step's rays that lie in
+    the mask and render opaque (> 0.5); the SDF pass does not count for the hash grid's
+    level schedule (it is the step's second).
+
+    Returns:
+        () the mean cost over the rays it counted.
+    """
+    use = (inputs.mask[:, 0] > 0.5) & (out.weight_sum[:, 0].detach() > 0.5) & out.active
+
+    def sdf(x: Tensor) -> Tensor:
+        return model.sdf.forward(x, count=False)[:, 0]
+
+    rays = PhotoRays(inputs.origins, inputs.dirs, inputs.view, inputs.xy, out.depth,
+                     out.normal, use)
+    cost, _ = photometric_term(inputs.photo, sdf, rays, cfg.train.photo)
+    return cost
+
+
 def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: Sampler,
                     bounds: tuple[RayBounds, ...]) -> tuple[Tensor, Tensor, Tensor | None]:
     """Render a step's rays and compute its loss (what `train.compile` compiles).
@@ -246,13 +276,15 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: 
         out = render_rays(model, inputs.origins, inputs.dirs, cfg.render, sampler,
                           cos_anneal_ratio=inputs.anneal, create_graph=True, bounds=bounds,
                           noise=inputs.noise, span=inputs.span)
-    curv = None
+    terms = {}
     if inputs.curvature_idx is not None:
-        curv = curvature_at_samples(model, inputs.origins, inputs.dirs, out,
-                                    inputs.curvature_idx)
+        terms["curvature"] = curvature_at_samples(model, inputs.origins, inputs.dirs, out,
+                                                  inputs.curvature_idx)
+    if inputs.photo is not None:
+        terms["photo"] = photo_at_rays(model, inputs, out, cfg)
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
                        eikonal_idx=inputs.eikonal_idx, ray_weight=inputs.ray_weight,
-                       foreground=inputs.foreground, curvature_term=curv)
+                       foreground=inputs.foreground, terms=terms)
     samples = out.active.sum() * out.t.shape[1]
     values = [losses[k] for k in LOSS_NAMES] + [out.inv_s, samples]  # () each, METRIC_NAMES
     errors = (None if inputs.ray_weight is None else
@@ -275,6 +307,8 @@ class StepSetup:
         warp: real iteration -> the recorded schedule's iteration, when a budget run
             compressed the rest of its schedule (`neus_l0.train.budget.ScheduleWarp`;
             None: the identity).
+        photo: the photometric term's views (`neus_l0.train.photometric.PhotoContext`;
+            None: the term is off).
     """
 
     bounds: tuple[RayBounds, ...] = ()
@@ -282,6 +316,7 @@ class StepSetup:
     pool: PixelPool | None = None
     compiled: Callable[..., tuple[Tensor, Tensor]] | None = None
     warp: ScheduleWarp | None = None
+    photo: PhotoContext | None = None
 
 
 def set_level_steps(model: NeuSModel, steps: int) -> None:
@@ -357,7 +392,7 @@ def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene,
     at = _schedule_position(model, optimizer, cfg, iteration, setup)
     emap = setup.pool.error_map if setup.pool is not None else None
     inputs = draw_step_inputs(scene, cfg, at, batch_size or cfg.train.batch_size,
-                              generator, setup.pool)
+                              generator, setup.pool, setup.photo)
     update_occupancy(occupancy, model, cfg, iteration)
     # the static bounds are in the looked-up spans when the pool kept them
     static = tuple(setup.bounds) if inputs.span is None else ()
