@@ -223,7 +223,10 @@ def _static_setup(scene: Scene, cfg: Config, run_dir: Path) -> StepSetup:
                                                  background=cfg.render.n_outside > 0),
                                 scene, cfg)
     ph = cfg.train.photo
-    if ph.weight > 0:
+    if ph.weight > 0 and scene.n_views < 2:
+        print("neus-l0: warning: train.photo needs at least 2 training views, this run has "
+              f"{scene.n_views}: the photometric term is off", file=sys.stderr, flush=True)
+    elif ph.weight > 0:
         setup.photo = PhotoContext.from_scene(scene, ph.sources, ph.patch, ph.stride, ph.best)
     return setup
 

@@ -162,8 +162,9 @@ def sample_gray(gray: Tensor, height: int, width: int, view: Tensor,
 
     Returns:
         values (...) (clamped to the border outside) and inside (...) bool: whether the
-        point lies within [0, W - 1] x [0, H - 1].
+        point lies within [0, W - 1] x [0, H - 1] (a non-finite coordinate lies outside).
     """
+    uv = torch.where(torch.isfinite(uv), uv, torch.full_like(uv, -1.0))  # NaN: outside
     x, y = uv[..., 0], uv[..., 1]
     inside = (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
     x = x.clamp(0, width - 1)

@@ -257,3 +257,27 @@ def test_hash_share_is_one_for_a_lone_label_and_falls_as_the_closed_form():
                                  hit_weight=2.0, free_weight=3.0)
     floor = next(r for r in rows if r["label"] == "pit floor")
     assert floor["L3 (36 cells)"] == pytest.approx(20 / (20 + 15))
+
+
+def test_source_visibility_sees_each_pixel_from_its_own_view_and_counts_shares(tiny_scene):
+    """A view is its own perfect source (every hit projects back onto its pixel at its
+    depth); a view from across the object does not see the far side; the shares sum to 1."""
+    import numpy as np
+
+    tool = _tool("source_visibility")
+    pts, depth, K, c2w = tool.first_hits(tiny_scene)
+    v = 0
+    hit = np.isfinite(pts[v, ..., 0])
+    own = tool.seen_by(pts[v][hit], np.array([v]), depth, K, c2w, tol=0.5)
+    assert hit.sum() > 100 and (own == 1).all()
+    centre = c2w[:, :3, 3].mean(0)
+    facing = (c2w[:, :3, 3] - centre) @ (c2w[v, :3, 3] - centre)
+    far = int(np.argmin(facing))  # the camera most opposite view 0
+    across = tool.seen_by(pts[v][hit], np.array([far]), depth, K, c2w, tol=0.5)
+    assert across.mean() < 0.5
+    rows = tool.visibility_table(tiny_scene, None, 3, 1.5)
+    assert rows and all(abs(sum(r["share_seen_by"]) - 1) < 1e-9 for r in rows if r["pixels"])
+    assert {r["feature"] for r in rows} == {f["name"] for f in json.loads(
+        (tiny_scene / "features.json").read_text())["features"]}
+    with pytest.raises(SystemExit, match="no feature named"):
+        tool.visibility_table(tiny_scene, ["no such"], 3, 1.5)

@@ -1,6 +1,7 @@
 """`train.photo`: multi-view photometric consistency of the rendered surface (Geo-NeuS's NCC
 term), against plain references and on an exactly rendered textured plane."""
 
+import json
 import math
 
 import numpy as np
@@ -16,6 +17,7 @@ from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields.encodings import HashGridEncoding
 from neus_l0.fields.model import make_model
 from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.loop import train
 from neus_l0.train.losses import LOSS_NAMES
 from neus_l0.train.photometric import (
     PhotoContext,
@@ -186,6 +188,9 @@ def test_sample_gray_is_exact_on_pixels_and_on_affine_images(seed):
     _, inside = sample_gray(aff, H, W, view[:2],
                             torch.tensor([[-0.5, 1.0], [2.0, H - 0.5]], dtype=torch.float64))
     assert not inside.any()
+    nan = torch.tensor([[float("nan"), 1.0], [2.0, float("inf")]], dtype=torch.float64)
+    vals, inside = sample_gray(aff, H, W, view[:2], nan)  # a diverged run's coordinates
+    assert not inside.any() and torch.isfinite(vals).all()
 
 
 @settings(max_examples=40, deadline=None)
@@ -409,3 +414,17 @@ def test_the_step_with_the_term(small, sphere_scene, tmp_path):
 def test_bad_settings_are_named(override, match):
     with pytest.raises(ConfigError, match=match):
         load_config("demo", [override])
+
+
+def test_a_run_logs_the_term_and_one_view_turns_it_off(small, sphere_scene, tmp_path, capsys):
+    def read_metrics(run):
+        return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+    cfg = load_config("demo", small + ["train.iters=20", "train.log_every=10"])
+    assert cfg.train.photo.weight > 0  # on in demo
+    train(sphere_scene(tmp_path / "s"), cfg, tmp_path / "run", progress=False)
+    rows = read_metrics(tmp_path / "run")
+    assert all(math.isfinite(r["photo_loss"]) for r in rows) and rows[-1]["photo_loss"] > 0
+    train(sphere_scene(tmp_path / "s1", n_views=1), cfg, tmp_path / "one", progress=False)
+    assert "train.photo needs at least 2 training views" in capsys.readouterr().err
+    assert all(r["photo_loss"] == 0.0 for r in read_metrics(tmp_path / "one"))

@@ -337,7 +337,10 @@ GRID = ["render.occupancy.enabled=true", "render.occupancy.resolution=32",
 
 
 def test_a_few_steps_with_the_grid_lower_the_loss(small, scene, tmp_path):
-    cfg = load_config("demo", small + GRID + ["train.iters=30", "train.eikonal_fraction=0.5"])
+    # the photometric term off: it counts more rays as they turn opaque, so the total loss
+    # does not measure the grid's fit (its own tests: tests/train/test_photometric.py)
+    cfg = load_config("demo", small + GRID + ["train.iters=30", "train.eikonal_fraction=0.5",
+                                              "train.photo.weight=0"])
     train(scene, cfg, tmp_path / "run", progress=False)
     m = read_metrics(tmp_path / "run")
     for row in m:
