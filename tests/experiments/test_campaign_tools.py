@@ -281,3 +281,16 @@ def test_source_visibility_sees_each_pixel_from_its_own_view_and_counts_shares(t
         (tiny_scene / "features.json").read_text())["features"]}
     with pytest.raises(SystemExit, match="no feature named"):
         tool.visibility_table(tiny_scene, ["no such"], 3, 1.5)
+
+
+def test_floor_height_keeps_the_vertices_over_the_floor_and_measures_their_rise():
+    import numpy as np
+
+    tool = _tool("floor_height")
+    g = np.random.default_rng(0)
+    xy = g.uniform(-20, 20, size=(500, 2))
+    raised = np.column_stack([xy, np.full(500, 12.5)])  # a floor 2.5 above the true one at 10
+    far = np.array([[0.0, 0.0, 60.0], [30.0, 0.0, 12.5]])  # too high / beside the floor
+    h = tool.floor_heights(np.vstack([raised, far]), np.array([0.0, 0.0, 10.0]), 7.0, 25.0)
+    inside = (np.hypot(xy[:, 0], xy[:, 1]) < 7.0).sum()
+    assert h.size == inside > 0 and np.allclose(h, 2.5)
