@@ -1,4 +1,4 @@
-"""Multi-view photometric consistency of the rendered surface (issue #35, `train.photo_weight`).
+"""Multi-view photometric consistency of the rendered surface (issue #35, `train.photo`).
 
 The colour loss can be met by a wrong surface: the colour network paints the texture where
 the surface happens to be (the deep pit's floor sits raised, seen right by every view one at
