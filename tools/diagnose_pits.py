@@ -57,6 +57,7 @@ from neus_l0.bounds.static import static_bounds
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import SamplerConfig
 from neus_l0.data.rays import rays_at
+from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.experiments.oracle import first_hit
 from neus_l0.formats.neus import load_scene
 from neus_l0.render.volume import coarse_z_vals
@@ -70,22 +71,6 @@ LABELS = ("nothing", "open surface", "pit wall", "pit floor", "rods")
 #: World-unit tolerance of the labels (about a pixel's footprint at 400x300).
 TOL = 1.0
 SAMPLERS = {"hvs": SamplerConfig(name="hvs"), "l0": SamplerConfig(name="l0")}
-
-
-def hit_points(root: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(V, H, W, 3) world first hits of every pixel's centre ray (NaN on misses) and the
-    (V, H, W) depth maps."""
-    meta = json.loads((root / "scene.json").read_text())
-    K = np.asarray(meta["cameras"]["intrinsics"])
-    c2w = np.asarray(meta["cameras"]["c2w_world"])  # (V, 4, 4)
-    with np.load(root / "gt_depth.npz") as f:
-        depth = np.stack([f[f"depth_{i}"] for i in range(len(c2w))])  # (V, H, W)
-    H, W = depth.shape[1:]
-    xs, ys = np.meshgrid(np.arange(W), np.arange(H))
-    cam = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T  # (H, W, 3), z = 1
-    d = np.where(np.isfinite(depth), depth, np.nan)[..., None]
-    pts = np.einsum("vij,vhwj->vhwi", c2w[:, :3, :3], cam[None] * d) + c2w[:, None, None, :3, 3]
-    return pts, depth
 
 
 def label(pts: np.ndarray) -> np.ndarray:
@@ -362,7 +347,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         bounds = static_bounds(scene, cfg, Path(tmp) / "hull.pt")
     pool = reachable_pixels(scene, cfg.render, bounds)
-    pts, _ = hit_points(args.scene)
+    pts, _, _ = first_hits(args.scene)
     labels = label(pts)  # (V, H, W)
     pool_labels = labels.reshape(-1)[pool.pixels.numpy()]
     views = view_table(labels, pool_labels, cfg.train.batch_size)

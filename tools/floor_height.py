@@ -38,7 +38,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window", type=float, default=25.0,
                     help="height window around the floor, world units (default 25)")
     a = ap.parse_args(argv)
-    feats = json.loads((a.scene / "features.json").read_text())["features"]
+    path = a.scene / "features.json"
+    if not path.is_file():
+        raise SystemExit(f"{path}: missing (a synthetic scene from neus-l0 synth has one)")
+    missing = [str(m) for m in a.meshes if not m.is_file()]
+    if missing:
+        raise SystemExit(f"no such mesh: {', '.join(missing)}")
+    feats = json.loads(path.read_text())["features"]
     f = next((f for f in feats if f["name"] == a.feature), None)
     if f is None:
         raise SystemExit(f"{a.scene / 'features.json'}: no feature named {a.feature!r}")

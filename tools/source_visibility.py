@@ -1,11 +1,11 @@
 """How many of a pixel's source views see what the pixel sees: the photometric term's
 (`train.photo`) blind spot, measured on a synthetic scene's exact depth maps (issue #35).
 
-For every pixel whose first true hit lies in a feature's ball (``features.json``), the hit
-point is projected into the view's `--sources` nearest views (`nearest_views`, as the term
-picks them); a source sees it when its own depth map at that pixel (nearest) lies within
-`--tol` world units of the point's depth. Prints, per feature, the pixels and views counted
-and the share of pixels seen by 0, 1, 2, ... sources.
+For every pixel whose first true hit (`first_hits`) lies in a feature's ball
+(``features.json``), the hit point is projected into the view's `--sources` nearest views
+(`nearest_views`, as the term picks them); a source sees it when its own depth map at that
+pixel (`pixel_indices`) lies within `--tol` world units of the point's depth. Prints, per
+feature, the pixels and views counted and the share of pixels seen by 0, 1, 2, ... sources.
 
     python tools/source_visibility.py SCENE [--features "cavity floor,shaft floor"]
         [--sources 4] [--tol 1.5] [--out table.json]
@@ -22,41 +22,24 @@ import numpy as np
 import torch
 
 from neus_l0.atomic import atomic_write_json
+from neus_l0.data.cameras import decompose_projection, depth_projection, pixel_indices
+from neus_l0.errors import NeusL0Error
+from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.train.photometric import nearest_views
 
 
-def first_hits(root: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(V, H, W, 3) world first hits of every pixel (NaN on misses), (V, H, W) depths along
-    the optical axis, (V, 3, 3) K and (V, 4, 4) camera-to-world, from ``scene.json`` and
-    ``gt_depth.npz``."""
-    meta = json.loads((root / "scene.json").read_text())
-    K = np.asarray(meta["cameras"]["intrinsics"], dtype=np.float64)
-    c2w = np.asarray(meta["cameras"]["c2w_world"], dtype=np.float64)
-    with np.load(root / "gt_depth.npz") as f:
-        depth = np.stack([f[f"depth_{i}"] for i in range(len(c2w))]).astype(np.float64)
-    H, W = depth.shape[1:]
-    xs, ys = np.meshgrid(np.arange(W), np.arange(H))
-    cam = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T  # (H, W, 3), z = 1
-    d = np.where(np.isfinite(depth), depth, np.nan)[..., None]
-    pts = np.einsum("vij,vhwj->vhwi", c2w[:, :3, :3], cam[None] * d) + c2w[:, None, None, :3, 3]
-    return pts, depth, K, c2w
-
-
-def seen_by(points: np.ndarray, sources: np.ndarray, depth: np.ndarray, K: np.ndarray,
-            c2w: np.ndarray, tol: float) -> np.ndarray:
+def seen_by(points: np.ndarray, sources: np.ndarray, depth: np.ndarray,
+            projections: np.ndarray, tol: float) -> np.ndarray:
     """(N,) how many of the views `sources` (M,) see the world points (N, 3): in the image,
-    in front, and their depth map at the (nearest) pixel within `tol` of the point's."""
+    in front, and their depth map (camera z) at the point's pixel within `tol` of its own."""
     H, W = depth.shape[1:]
     count = np.zeros(len(points), dtype=np.int64)
     for j in sources:
-        cam = (points - c2w[j, :3, 3]) @ c2w[j, :3, :3]  # R^T (X - c)
-        z = cam[:, 2]
-        uv = (cam @ K.T)[:, :2] / np.where(np.abs(z) < 1e-12, 1e-12, z)[:, None]
-        u, v = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
-        ok = (z > 0) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        col, row, z = pixel_indices(depth_projection(projections[j]), points, H, W)
+        inside = col >= 0
         there = np.full(len(points), np.nan)
-        there[ok] = depth[j][v[ok], u[ok]]
-        count += (ok & (np.abs(there - z) < tol)).astype(np.int64)
+        there[inside] = depth[j][row[inside], col[inside]]
+        count += (inside & (np.abs(there - z) < tol)).astype(np.int64)
     return count
 
 
@@ -64,8 +47,11 @@ def visibility_table(root: Path, names: list[str] | None, n_sources: int,
                      tol: float) -> list[dict]:
     """Per feature (all of ``features.json`` when `names` is None): pixels, views, and the
     share of pixels seen by k sources, k = 0 .. n_sources."""
-    pts, depth, K, c2w = first_hits(root)
-    feats = json.loads((root / "features.json").read_text())["features"]
+    pts, depth, projections = first_hits(root)
+    path = root / "features.json"
+    if not path.is_file():
+        raise SystemExit(f"{path}: missing (a synthetic scene from neus-l0 synth has one)")
+    feats = json.loads(path.read_text())["features"]
     if names is not None:
         missing = sorted(set(names) - {f["name"] for f in feats})
         if missing:
@@ -73,17 +59,18 @@ def visibility_table(root: Path, names: list[str] | None, n_sources: int,
         feats = [f for f in feats if f["name"] in names]
     with np.load(root / "cameras_sphere.npz") as cams:  # the object sphere's centre
         centre = np.asarray(cams["scale_mat_0"], dtype=np.float64)[:3, 3]
-    centres = torch.tensor(c2w[:, :3, 3] - centre)  # the term's frame, up to scale
+    cams_at = np.stack([decompose_projection(P)[1][:3, 3] for P in projections])
+    centres = torch.tensor(cams_at - centre)  # the term's frame, up to scale
     sources = nearest_views(centres, n_sources).numpy()
     rows = []
     for f in feats:
         inside = np.linalg.norm(pts - np.asarray(f["center"]), axis=-1) <= f["radius"]
         counts, views = [], 0
-        for v in range(len(c2w)):
+        for v in range(len(projections)):
             sel = inside[v]
             if sel.any():
                 views += 1
-                counts.append(seen_by(pts[v][sel], sources[v], depth, K, c2w, tol))
+                counts.append(seen_by(pts[v][sel], sources[v], depth, projections, tol))
         all_counts = np.concatenate(counts) if counts else np.zeros(0, dtype=np.int64)
         hist = np.bincount(all_counts, minlength=sources.shape[1] + 1)
         rows.append({"feature": f["name"], "pixels": int(all_counts.size), "views": views,
@@ -100,7 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="also write the table as JSON")
     a = ap.parse_args(argv)
     names = [n.strip() for n in a.features.split(",") if n.strip()] or None
-    rows = visibility_table(a.scene, names, a.sources, a.tol)
+    try:
+        rows = visibility_table(a.scene, names, a.sources, a.tol)
+    except NeusL0Error as exc:  # a missing or malformed scene file, named
+        raise SystemExit(f"source_visibility: {exc}") from None
     k = a.sources
     print("| feature | pixels | views | " + " | ".join(f"seen by {i}" for i in range(k + 1))
           + " |")

@@ -33,7 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
-from neus_l0.data.cameras import depth_projection, pixel_indices, read_indexed, read_world_mats
+from neus_l0.data.cameras import (
+    decompose_projection,
+    depth_projection,
+    pixel_indices,
+    read_indexed,
+    read_world_mats,
+)
 from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.chamfer import (
     ChamferResult,
@@ -96,6 +102,36 @@ def load_depths(path: str | os.PathLike) -> list[np.ndarray]:
         if maps[i].ndim != 2:
             raise NeusL0Error(f"{path}: depth_{i} must be 2-D, got shape {maps[i].shape}")
     return [maps[i] for i in range(n)]
+
+
+def first_hits(scene_dir: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where every pixel's ray first meets the true surface, from `gt_depth.npz` (camera z)
+    and the cameras.
+
+    Returns:
+        (V, H, W, 3) world points (NaN where the ray misses), the (V, H, W) depth maps and
+        the (V, 3, 4) projections world -> pixels (`read_world_mats`).
+
+    Raises:
+        NeusL0Error: a missing or malformed file, or depth maps that do not match cameras.
+    """
+    root = Path(scene_dir)
+    projections = read_world_mats(root)
+    depths = load_depths(root / "gt_depth.npz")
+    if len(depths) != len(projections) or len({d.shape for d in depths}) > 1:
+        raise NeusL0Error(f"{root / 'gt_depth.npz'}: {len(depths)} depth maps of shapes "
+                          f"{sorted({d.shape for d in depths})} for {len(projections)} cameras")
+    depth = np.stack(depths).astype(np.float64)  # (V, H, W)
+    H, W = depth.shape[1:]
+    xs, ys = np.meshgrid(np.arange(W), np.arange(H))
+    pix = np.stack([xs, ys, np.ones_like(xs)], -1).astype(np.float64)  # (H, W, 3)
+    pts = np.empty(depth.shape + (3,))
+    for v, P in enumerate(projections):
+        K, c2w = decompose_projection(P)
+        cam = pix @ np.linalg.inv(K).T  # (H, W, 3), z = 1
+        d = np.where(np.isfinite(depth[v]), depth[v], np.nan)[..., None]
+        pts[v] = (cam * d) @ c2w[:3, :3].T + c2w[:3, 3]
+    return pts, depth, projections
 
 
 def load_synthetic_gt(scene_dir: str | os.PathLike) -> SyntheticGT:

@@ -264,16 +264,21 @@ def test_source_visibility_sees_each_pixel_from_its_own_view_and_counts_shares(t
     depth); a view from across the object does not see the far side; the shares sum to 1."""
     import numpy as np
 
+    from neus_l0.evaluation.synthetic import first_hits
+
     tool = _tool("source_visibility")
-    pts, depth, K, c2w = tool.first_hits(tiny_scene)
+    pts, depth, projections = first_hits(tiny_scene)
     v = 0
     hit = np.isfinite(pts[v, ..., 0])
-    own = tool.seen_by(pts[v][hit], np.array([v]), depth, K, c2w, tol=0.5)
+    own = tool.seen_by(pts[v][hit], np.array([v]), depth, projections, tol=0.5)
     assert hit.sum() > 100 and (own == 1).all()
-    centre = c2w[:, :3, 3].mean(0)
-    facing = (c2w[:, :3, 3] - centre) @ (c2w[v, :3, 3] - centre)
+    from neus_l0.data.cameras import decompose_projection
+
+    at = np.stack([decompose_projection(P)[1][:3, 3] for P in projections])
+    centre = at.mean(0)
+    facing = (at - centre) @ (at[v] - centre)
     far = int(np.argmin(facing))  # the camera most opposite view 0
-    across = tool.seen_by(pts[v][hit], np.array([far]), depth, K, c2w, tol=0.5)
+    across = tool.seen_by(pts[v][hit], np.array([far]), depth, projections, tol=0.5)
     assert across.mean() < 0.5
     rows = tool.visibility_table(tiny_scene, None, 3, 1.5)
     assert rows and all(abs(sum(r["share_seen_by"]) - 1) < 1e-9 for r in rows if r["pixels"])

@@ -1,6 +1,5 @@
 """`cup`: the held-out object of the pits issue, and the torus its handle is made of."""
 
-import json
 import math
 
 import pytest
@@ -8,7 +7,6 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from neus_l0.synthetic.scene import make_scene
 from neus_l0.synthetic.shapes import CUP_CAVITY, CUP_RODS, Torus, builtin_shape
 
 
@@ -49,10 +47,3 @@ def test_the_cavity_is_as_deep_as_wide_and_the_rods_stand_below_the_rim():
     kinds = {f["name"]: f["kind"] for f in cup.features}
     assert kinds["handle r5"] == "thin" and kinds["dimple 1"] == "pit"
 
-
-def test_the_cup_scene_builds(tmp_path):
-    out = make_scene("cup", tmp_path / "s", views=2, width=32, height=24, spp=1,
-                     gt_voxel=4.0, point_spacing=4.0, progress=False)
-    meta = json.loads((out / "scene.json").read_text())
-    names = [f["name"] for f in json.loads((out / "features.json").read_text())["features"]]
-    assert meta["name"] == "cup" and "cavity floor" in names and "cavity rod r3" in names

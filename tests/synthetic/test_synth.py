@@ -161,3 +161,39 @@ def test_same_seed_same_scene(tmp_path):
     sa, sb = load_scene(a), load_scene(b)
     torch.testing.assert_close(sa.images, sb.images)
     torch.testing.assert_close(sa.c2w, sb.c2w)
+
+
+@pytest.mark.parametrize("name, features", [("cup", ("cavity floor", "cavity rod r3")),
+                                            ("well", ("shaft floor", "shaft rod r2"))])
+def test_the_held_out_scenes_build(tmp_path, name, features):
+    """The pits issue's held-out objects render as scenes with their named features."""
+    out = make_scene(name, tmp_path / "s", views=2, width=32, height=24, spp=1,
+                     gt_voxel=4.0, point_spacing=4.0, progress=False)
+    meta = json.loads((out / "scene.json").read_text())
+    names = [f["name"] for f in json.loads((out / "features.json").read_text())["features"]]
+    assert meta["name"] == name and set(features) <= set(names)
+
+
+def test_first_hits_lie_on_the_true_surface_and_a_bad_depth_file_is_named(tiny_scene, tmp_path):
+    """`first_hits` lifts gt_depth.npz through each camera: the points lie on the demo's
+    analytic surface (placed at WORLD_OFFSET); misses stay NaN; a depth file with a map
+    missing is refused by name."""
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.evaluation.synthetic import first_hits
+    from neus_l0.synthetic.shapes import Translated, builtin_shape
+
+    pts, depth, projections = first_hits(tiny_scene)
+    assert pts.shape == depth.shape + (3,) and len(projections) == len(depth)
+    hit = np.isfinite(depth)
+    assert hit.any() and (~hit).any() and np.isnan(pts[~hit]).all()
+    sdf = Translated(builtin_shape("demo").sdf, WORLD_OFFSET)
+    d = sdf(torch.tensor(pts[hit], dtype=torch.float64)).abs()
+    assert float(torch.quantile(d, 0.99)) < 0.05
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for f in ("cameras_sphere.npz", "scene.json"):
+        (bad / f).write_bytes((tiny_scene / f).read_bytes())
+    with np.load(tiny_scene / "gt_depth.npz") as z:
+        np.savez(bad / "gt_depth.npz", **{k: z[k] for k in list(z.files)[:-1]})
+    with pytest.raises(NeusL0Error, match="gt_depth.npz"):
+        first_hits(bad)
