@@ -123,6 +123,7 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "anneal_end"): at_least(0),
     (TrainConfig, "igr_weight"): at_least(0),
     (TrainConfig, "mask_weight"): at_least(0),
+    (TrainConfig, "carve_weight"): at_least(0, "0: off"),
     (TrainConfig, "seed"): at_least(0),
     (TrainConfig, "log_every"): at_least(1),
     (TrainConfig, "val_every"): at_least(0, "0: never"),
@@ -228,6 +229,12 @@ def _check_photo(obj: PhotoConfig, bad: Callable[[str, str], ConfigError]) -> No
         raise bad("best", f"{obj.best}: at most train.photo.sources ({obj.sources})")
 
 
+def _check_train(obj: TrainConfig, bad: Callable[[str, str], ConfigError]) -> None:
+    if obj.carve_weight > 0 and obj.mask_weight <= 0:
+        raise bad("carve_weight", f"{obj.carve_weight}: carving reads the masks; it needs "
+                  "train.mask_weight > 0")
+
+
 #: The rules that tie several keys of one config class together.
 JOINT_RULES: dict[type, Callable[[Any, Callable[[str, str], ConfigError]], None]] = {
     EncodingConfig: _check_encoding,
@@ -237,6 +244,7 @@ JOINT_RULES: dict[type, Callable[[Any, Callable[[str, str], ConfigError]], None]
     OccupancyConfig: _check_occupancy,
     SamplerConfig: _check_sampler,
     PhotoConfig: _check_photo,
+    TrainConfig: _check_train,
 }
 
 

@@ -437,6 +437,11 @@ class TrainConfig:
     """Weight of the Eikonal loss."""
     mask_weight: float = 0.1
     """Weight of the mask BCE loss (0: masks unused)."""
+    carve_weight: float = 0.0
+    """Weight of silhouette carving (`neus_l0.train.losses.free_space`): on the rays whose
+    mask is 0, how far the deepest sample lies inside the surface (0: off; needs the
+    masks, `mask_weight` > 0). It removes what the mask BCE leaves a pixel or two outside
+    the silhouettes, such as a skirt under an object that no camera sees from below."""
     seed: int = 0
     """Seed of the network initialisation and of the ray / sample generator."""
     log_every: int = 100

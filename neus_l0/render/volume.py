@@ -195,6 +195,7 @@ class RenderOutput:
         normal: (B, 3) the weighted sum of gradients inside the sphere (not normalised).
         weights: (B, N [+ n_outside]) compositing weights.
         gradients: (B, N, 3) SDF gradients at the section midpoints.
+        sdf: (B, N) the SDF at the section midpoints (with its graph).
         eikonal_mask: (B, N) samples the Eikonal term counts (radius < 1.2, active rays).
         t: (B, N) sorted sample positions; t_fine: (B, n_importance) the up-sampled ones
             (sorted within each round); t_mid: (B, N) section midpoints.
@@ -211,6 +212,7 @@ class RenderOutput:
     normal: Tensor
     weights: Tensor
     gradients: Tensor
+    sdf: Tensor
     eikonal_mask: Tensor
     t: Tensor
     t_fine: Tensor
@@ -235,9 +237,9 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor,
 
     Returns:
         dict with ``t`` (B, N) sorted, ``t_fine`` (B, n_importance), ``t_mid`` and
-        ``dists`` (B, N), ``pts`` (B, N, 3) at the midpoints, ``gradients`` (B, N, 3),
-        ``rgb`` (B, N, 3) and ``alpha`` (B, N), all float32 (network outputs are cast back
-        from any autocast precision).
+        ``dists`` (B, N), ``pts`` (B, N, 3) at the midpoints, ``sdf`` (B, N) and
+        ``gradients`` (B, N, 3) there, ``rgb`` (B, N, 3) and ``alpha`` (B, N), all
+        float32 (network outputs are cast back from any autocast precision).
     """
     B = origins.shape[0]
     near, far, skipped = interval
@@ -265,7 +267,7 @@ def _foreground(model: NeuSModel, origins: Tensor, dirs: Tensor,
     inv_s = model.variance.inv_s()
     alpha = section_alpha(sdf, annealed_cos(true_cos, cos_anneal_ratio), half, inv_s, skipped)
     return {"t": t, "t_fine": t_fine, "dists": dists, "t_mid": mid, "pts": pts,
-            "gradients": gradients, "rgb": rgb, "alpha": alpha, "inv_s": inv_s}
+            "sdf": sdf, "gradients": gradients, "rgb": rgb, "alpha": alpha, "inv_s": inv_s}
 
 
 def _with_background(model: NeuSModel, origins: Tensor, dirs: Tensor, fg: dict[str, Tensor],
@@ -359,7 +361,7 @@ def render_rays(model: NeuSModel, origins: Tensor, dirs: Tensor, cfg: RenderConf
     normal = (fg["gradients"] * w_in[..., None]).sum(dim=1)
     return RenderOutput(
         color=color, weight_sum=weight_sum, depth=depth, normal=normal, weights=weights,
-        gradients=fg["gradients"], eikonal_mask=eikonal_mask, t=fg["t"],
+        gradients=fg["gradients"], sdf=fg["sdf"], eikonal_mask=eikonal_mask, t=fg["t"],
         t_fine=fg["t_fine"], t_mid=fg["t_mid"], inside_sphere=inside, active=active,
         inv_s=fg["inv_s"].reshape(()),
     )

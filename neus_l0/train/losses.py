@@ -13,7 +13,7 @@ from neus_l0.config.schema import TrainConfig
 
 #: The names of what `neus_loss` returns, in the order the step reports them.
 LOSS_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "curvature_loss", "photo_loss",
-              "psnr")
+              "carve_loss", "psnr")
 
 if TYPE_CHECKING:
     from neus_l0.render.volume import RenderOutput
@@ -109,6 +109,34 @@ def mask_bce(weight_sum: Tensor, mask: Tensor, weight: Tensor | None = None) -> 
     return F.binary_cross_entropy(p, mask, weight=None if weight is None else weight[:, None])
 
 
+def free_space(sdf: Tensor, empty: Tensor, inside: Tensor, weight: Tensor | None = None
+               ) -> Tensor:
+    """Silhouette carving: how far inside the surface the rays that miss the object go.
+
+    A pixel whose mask is 0 sees no object, so the SDF is positive all along its ray (IDR's
+    mask term, in its hinge limit): the term is ``sum_b e_b w_b relu(-min_n sdf_bn) / B``
+    over the samples inside the unit sphere, with ``e_b`` = 1 on those rays. It is 0 for an
+    SDF that agrees with the masks (no bias on a correct surface) and its gradient reaches
+    the one sample that lies deepest, whatever the opacity there, so it removes surface
+    that only a pixel or two outside the silhouette sees (under the object, where the mask
+    BCE's gradient is faint).
+
+    Args:
+        sdf: (B, N) the SDF at the rays' samples; empty: (B,) in {0, 1}, the rays whose
+            mask is 0; inside: (B, N) in {0, 1}, the samples that count (inside the unit
+            sphere, on rays that got samples); weight: (B,) importance weights of the
+            rays (None: uniform).
+
+    Returns:
+        () loss, a mean over the batch (rays off `empty` count as 0).
+    """
+    depth = (-sdf).clamp_min(0.0) * inside  # (B, N): how far inside, 0 where it doesn't count
+    per_ray = depth.amax(dim=1) * empty  # (B,)
+    if weight is not None:
+        per_ray = per_ray * weight
+    return per_ray.sum() / max(1, sdf.shape[0])
+
+
 def eikonal(gradients: Tensor, mask: Tensor) -> Tensor:
     """NeuS's Eikonal term: the mean of ``(|grad| - 1)^2`` over the samples `mask` keeps.
 
@@ -170,11 +198,12 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         terms: the terms the caller computes (they need the network), () each:
             ``curvature`` (`curvature`), added with ``cfg.curvature_weight``, and ``photo``
             (`neus_l0.train.photometric.photometric_term`), added with
-            ``cfg.photo.weight``; a missing one is 0.
+            ``cfg.photo.weight``, and ``carve`` (`free_space`), added with
+            ``cfg.carve_weight * mask_scale``; a missing one is 0.
 
     Returns:
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
-        ``curvature_loss``, ``photo_loss``, ``psnr``.
+        ``curvature_loss``, ``photo_loss``, ``carve_loss``, ``psnr``.
     """
     if ray_weight is None:
         color = color_l1(out.color, target_rgb, mask)
@@ -193,10 +222,13 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
     terms = terms or {}
     curvature_term = terms.get("curvature", torch.zeros_like(color))
     photo_term = terms.get("photo", torch.zeros_like(color))
+    carve_term = terms.get("carve", torch.zeros_like(color))
     if "curvature" in terms:
         loss = loss + cfg.curvature_weight * curvature_term
     if "photo" in terms:
         loss = loss + cfg.photo.weight * photo_term
+    if "carve" in terms:
+        loss = loss + cfg.carve_weight * mask_scale * carve_term
     return {  # keys: LOSS_NAMES
         "loss": loss,
         "color_loss": color,
@@ -204,6 +236,7 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         "mask_loss": mloss,
         "curvature_loss": curvature_term,
         "photo_loss": photo_term,
+        "carve_loss": carve_term,
         "psnr": masked_psnr(out.color.detach(), target_rgb, mask),
     }
 
