@@ -441,7 +441,10 @@ class TrainConfig:
     """Weight of silhouette carving (`neus_l0.train.losses.free_space`): on the rays whose
     mask is 0, how far the deepest sample lies inside the surface (0: off; needs the
     masks, `mask_weight` > 0). It removes what the mask BCE leaves a pixel or two outside
-    the silhouettes, such as a skirt under an object that no camera sees from below."""
+    the silhouettes, such as a skirt under an object that no camera sees from below. Off:
+    at 100 it lowered the demo scene's accuracy (200x150 views) to 0.65x; at 10 on 400x300
+    views the accuracy to 0.90x but not the pits (docs/BENCHMARKS.md, "Where does the error
+    live")."""
     seed: int = 0
     """Seed of the network initialisation and of the ray / sample generator."""
     log_every: int = 100

@@ -115,6 +115,18 @@ def test_the_step_with_the_term(small, sphere_scene, tmp_path):
                                                           rel=1e-3, abs=1e-6)
 
 
+def test_only_a_mask_of_exactly_0_marks_a_ray(small, sphere_scene, tmp_path):
+    """A soft mask (a downscaled one) of 0.3 is background to the mask term (> 0.5 is
+    foreground) but not empty: part of the pixel sees the object, so its ray is not carved."""
+    scene = sphere_scene(tmp_path / "s")
+    scene.masks = torch.where(scene.masks > 0, scene.masks, torch.full_like(scene.masks, 0.3))
+    cfg = load_config("demo", small + ["train.compile=false", "train.photo.weight=0",
+                                       "train.carve_weight=1"])
+    inputs = draw_step_inputs(scene, cfg, 3, 256, torch.Generator().manual_seed(0), None)
+    assert (inputs.mask[:, 0] == 0).any()  # the mask term reads them as background
+    assert inputs.empty is not None and inputs.empty.sum().item() == 0
+
+
 def test_range():
     assert load_config("demo").train.carve_weight >= 0.0
     with pytest.raises(ConfigError, match="carve_weight"):
