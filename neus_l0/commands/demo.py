@@ -29,6 +29,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                         "planned from the step rate measured after the compile and the "
                         "schedule finishes; the scene, mesh and score come on top (default: "
                         "the config's 3500 iterations)")
+    p.add_argument("--close-underside", action=argparse.BooleanOptionalAction, default=True,
+                   help="close the mesh's underside, which no demo camera sees, flat just "
+                        "below the lowest point the views see (as `neus-l0 mesh "
+                        "--close-underside`; default on)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     accept_overrides(p)
     return p
@@ -61,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     result = run_demo(DemoOptions(out=out, conf=args.conf, overrides=list(args.overrides),
                                   device=args.device, threads=args.threads,
                                   resolution=args.resolution, quiet=args.quiet,
-                                  budget=budget))
+                                  close_underside=args.close_underside, budget=budget))
     if result.signal:
         print(f"neus-l0 demo: stopped by {result.signal} at iteration {result.iteration}; "
               f"checkpoint {result.checkpoint} written; run the same command again to "

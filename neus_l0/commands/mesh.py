@@ -23,6 +23,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="drop floating specks: connected pieces whose bounding-box diagonal is "
                         "under 5%% of the main piece's (default on; thin parts cut off by the "
                         "grid stay)")
+    p.add_argument("--close-underside", action="store_true",
+                   help="close the underside no training view sees flat, under the lowest "
+                        "point they see in their masks (not the visual hull's cone; needs "
+                        "the run's scene with masks; extracts twice)")
     p.add_argument("--colors", action="store_true",
                    help="vertex colours from the colour network (view = -normal)")
     p.add_argument("--texture", action="store_true",
@@ -105,18 +109,21 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.mesh.cleanup import clean_up
     from neus_l0.mesh.extract import export_mesh, vertex_colors
     from neus_l0.mesh.from_run import mesh_from_run
+    from neus_l0.mesh.underside import underside_line
 
     out, method, options = _check(args)
     device = pick_device(args.device)
     use_threads(args.threads, device)
     t0 = time.monotonic()
     made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
-                         progress=not args.quiet)
+                         progress=not args.quiet, close_underside=args.close_underside)
     mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "
           f"evaluations ({st['sdf_evals'] / st['dense_evals']:.1%} of the dense grid), "
           f"{st['seconds']:.1f} s")
+    if args.close_underside:
+        print(underside_line(mesh.metadata["underside_plane"]))
     if options.any():
         n_before = len(mesh.faces)
         mesh = clean_up(mesh, options)

@@ -7,6 +7,7 @@ tools share, so none of them can forget the hull or the run's ``scale_mat``.
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +16,11 @@ import trimesh
 
 from neus_l0.bounds.hull import load_run_hull
 from neus_l0.config.schema import Config
+from neus_l0.data.cameras import read_masks, read_world_mats
+from neus_l0.errors import NeusL0Error
 from neus_l0.fields.model import NeuSModel
 from neus_l0.mesh.extract import extract_mesh, progress_bars
+from neus_l0.mesh.underside import cut_below, underside_plane
 from neus_l0.run.checkpoints import load_trained_model
 
 
@@ -44,7 +48,8 @@ class RunMesh:
 
 def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.device = "cpu",
                   checkpoint: str | Path | None = None, clean: bool = True,
-                  method: str = "auto", progress: bool = False) -> RunMesh:
+                  method: str = "auto", progress: bool = False,
+                  close_underside: bool = False) -> RunMesh:
     """Marching cubes of a run's SDF at `resolution`^3, restricted to the run's visual hull
     (``RUN/hull.pt``, when it has one).
 
@@ -56,13 +61,63 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         clean: drop floating specks (see `extract_mesh`).
         method: ``auto``, ``dense`` or ``sparse`` (see `extract_mesh`).
         progress: a tqdm bar on stderr while the SDF is evaluated (`progress_bars`).
+        close_underside: close the underside no training view sees flat, at the plane
+            `neus_l0.mesh.underside.underside_plane` finds on a first mesh (then extracted
+            again, cut there); needs the run's scene with masks.
 
     Raises:
         NeusL0Error: no usable checkpoint, or no surface in the field.
     """
     model, cfg, info = load_trained_model(run_dir, device, checkpoint)
+    scale_mat = np.asarray(info["scale_mat"], dtype=np.float64)
+    hull = load_run_hull(run_dir, device)
     with progress_bars(progress):
-        mesh = extract_mesh(model, np.asarray(info["scale_mat"]), resolution=resolution,
-                            clean=clean, device=device, method=method,
-                            hull=load_run_hull(run_dir, device))
+        mesh = extract_mesh(model, scale_mat, resolution=resolution, clean=clean,
+                            device=device, method=method, hull=hull)
+        plane = run_underside_plane(run_dir, mesh) if close_underside else None
+        if plane is not None:
+            cut = cut_below(model, *plane_to_normalised(plane, scale_mat))
+            mesh = extract_mesh(cut, scale_mat, resolution=resolution, clean=clean,
+                                device=device, method=method, hull=hull)
+    if close_underside:
+        mesh.metadata["underside_plane"] = (None if plane is None else
+                                            {"up": plane[0].tolist(), "height": plane[1]})
     return RunMesh(mesh, model, cfg, info)
+
+
+def run_underside_plane(run_dir: str | Path, mesh: trimesh.Trimesh
+                        ) -> tuple[np.ndarray, float] | None:
+    """`underside_plane` (world units) of a run's first mesh, seen by the run's training
+    views (``run.json``: its scene and ``views.train``) through their masks.
+
+    Raises:
+        NeusL0Error: no ``run.json``, its scene is gone or has no masks.
+    """
+    record = Path(run_dir) / "run.json"
+    try:
+        run = json.loads(record.read_text())
+        scene = Path(run["scene"])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise NeusL0Error(f"{record}: cannot read the run's scene for --close-underside "
+                          f"({e})") from None
+    projections = read_world_mats(scene)
+    masks = read_masks(scene)
+    train = run.get("views", {}).get("train") or list(range(len(projections)))
+    missing = [v for v in train if v not in masks]
+    if missing:
+        raise NeusL0Error(f"{scene / 'mask'}: no mask for training view(s) {missing[:5]}; "
+                          "--close-underside needs the masks")
+    return underside_plane(mesh, projections[train], [masks[v] for v in train])
+
+
+def plane_to_normalised(plane: tuple[np.ndarray, float], scale_mat: np.ndarray
+                        ) -> tuple[np.ndarray, float]:
+    """A plane ``up . x >= height`` from world units to the normalised frame of `scale_mat`
+    (4, 4) normalised -> world (NeuS's: a uniform scale s and a shift t; world x = s n + t,
+    so ``up . n >= (height - up . t) / s``)."""
+    up, height = plane
+    s, t = scale_mat[0, 0], scale_mat[:3, 3]
+    if not np.allclose(scale_mat[:3, :3], s * np.eye(3)):
+        raise NeusL0Error("--close-underside: the scene's scale_mat is not a uniform scale "
+                          "and shift")
+    return up, float((height - up @ t) / s)

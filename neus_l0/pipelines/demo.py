@@ -43,6 +43,9 @@ class DemoOptions:
     threads: int | None = None
     resolution: int = DEMO_RESOLUTION
     quiet: bool = False
+    close_underside: bool = True
+    """Close the mesh's underside, which no demo camera sees, flat (`neus-l0 mesh
+    --close-underside`)."""
     budget: float = 0.0
     """Seconds for the training stage (``train.budget``: compile, steps and the final
     checkpoint; the iterations planned from the measured step rate); 0: the config's
@@ -131,7 +134,9 @@ def run_demo(opts: DemoOptions) -> DemoResult:
         "iterations": trained.iteration,
         "train_final": trained.metrics,
         "mesh": {"path": str(paths["mesh"]), "vertices": len(mesh.vertices),
-                 "faces": len(mesh.faces), "resolution": opts.resolution},
+                 "faces": len(mesh.faces), "resolution": opts.resolution,
+                 "close_underside": opts.close_underside,
+                 "underside_plane": mesh.metadata.get("underside_plane")},
         "sampler": cfg.sampler.name,
         "conf": str(opts.conf),
         "device": device,
@@ -172,7 +177,8 @@ def _mesh_score_draw(opts: DemoOptions, paths: dict[str, Path], device: str,
 
     t0 = time.monotonic()
     print(f"[3/4] extracting the mesh at {opts.resolution}^3 ...", flush=True)
-    mesh = mesh_from_run(paths["run"], opts.resolution, device, progress=not opts.quiet).mesh
+    mesh = mesh_from_run(paths["run"], opts.resolution, device, progress=not opts.quiet,
+                         close_underside=opts.close_underside).mesh
     mesh_path = export_mesh(mesh, paths["mesh"])
     timings["mesh_s"] = time.monotonic() - t0
 

@@ -30,6 +30,12 @@ def test_the_demo_trains_a_planned_budget_and_a_rerun_reuses_it(small, monkeypat
     assert main(argv) == 0  # the finished plan is reused, not re-planned
     again = json.loads((out / "metrics.json").read_text())
     assert again["iterations"] == metrics["iterations"]
+    # the demo closes the unseen underside by default; --no-close-underside meshes as is
+    assert metrics["mesh"]["close_underside"] is True
+    assert "underside_plane" in metrics["mesh"]
+    assert main([*argv, "--no-close-underside"]) == 0
+    plain = json.loads((out / "metrics.json").read_text())["mesh"]
+    assert plain["close_underside"] is False and plain["underside_plane"] is None
     capsys.readouterr()
     # the recorded plan does not let another sampler through under the run's label
     assert main([*argv, "sampler=hvs"]) == 2

@@ -1,0 +1,180 @@
+"""`neus-l0 mesh --close-underside`: the plane below everything the views see, and the SDF cut
+flat there (`neus_l0.mesh.underside`)."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from neus_l0.cli import main
+from neus_l0.data.cameras import look_at, projection_matrix, to_world
+from neus_l0.errors import NeusL0Error
+from neus_l0.mesh.extract import extract_mesh
+from neus_l0.mesh.from_run import plane_to_normalised
+from neus_l0.mesh.underside import (
+    camera_up,
+    cut_below,
+    seen_counts,
+    underside_line,
+    underside_plane,
+)
+
+W = H = 96
+K = np.array([[110.0, 0.0, (W - 1) / 2], [0.0, 110.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def rig(elevations, n_azimuths=8, distance=6.0, target=(0.0, 0.0, 0.0), rotate=None):
+    """(V, 3, 4) projections of cameras on rings at `elevations` (degrees) around `target`,
+    all looking at it; `rotate` (3, 3) turns the whole rig (its up is then rotate @ z)."""
+    R = np.eye(3) if rotate is None else rotate
+    target = np.asarray(target, dtype=np.float64)
+    out = []
+    for e in np.radians(elevations):
+        for a in np.linspace(0, 2 * np.pi, n_azimuths, endpoint=False) + 0.3 * e:
+            eye = target + R @ (distance * np.array([np.cos(e) * np.cos(a),
+                                                     np.cos(e) * np.sin(a), np.sin(e)]))
+            out.append(projection_matrix(K, look_at(eye, target, up=R @ [0, 0, 1.0]))[:3])
+    return np.stack(out)
+
+
+def all_foreground(n):
+    return [np.ones((H, W), dtype=bool)] * n
+
+
+def box_with_sag(depth=0.35):
+    """A 2 x 2 x 1 box (bottom at z = 0) with a shallow pyramid under it, apex at -depth
+    (its faces slope 19 degrees for depth 0.35: hidden from views 20 degrees up or more),
+    subdivided so that its faces have inner vertices."""
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (0, 1)], float)
+    hull = trimesh.convex.convex_hull(np.vstack([corners, [[0, 0, -depth]]]))
+    v, f = trimesh.remesh.subdivide_to_size(hull.vertices, hull.faces, max_edge=0.1)
+    return trimesh.Trimesh(v, f)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_up_is_the_mean_direction_to_the_cameras_whatever_the_rig_turn(seed):
+    R = Rotation.random(random_state=seed).as_matrix()
+    target = np.random.default_rng(seed).normal(size=3)
+    up = camera_up(rig([25, 50, 70], rotate=R, target=target), target)
+    assert np.allclose(up, R @ [0, 0, 1.0], atol=1e-9)
+
+
+def test_cameras_all_around_have_no_up():
+    with pytest.raises(NeusL0Error, match="surround"):
+        camera_up(rig([-40, 0, 40]), np.zeros(3))
+
+
+def test_the_top_is_seen_the_bottom_is_not_and_the_masks_count():
+    mesh = box_with_sag()
+    P = rig([20, 45, 70])
+    counts = seen_counts(mesh, P, all_foreground(len(P)))
+    z = mesh.vertices[:, 2]
+    top = np.isclose(z, 1.0) & (np.abs(mesh.vertices[:, :2]).max(axis=1) < 0.95)
+    assert (counts[top] >= 8).all()  # every ring sees the top
+    assert (counts[z < -0.02] == 0).all()  # the pyramid faces away from every view
+    side = (np.abs(mesh.vertices[:, 0]) > 0.999) & (z > 0.05) & (z < 0.95)
+    assert (counts[side] > 0).all()  # the sides, down to near the bottom edge
+    none = seen_counts(mesh, P, [np.zeros((H, W), dtype=bool)] * len(P))
+    assert (none == 0).all()  # outside the masks nothing is seen
+
+
+def test_the_plane_lies_just_under_the_box_and_nothing_without_a_sag():
+    P = rig([20, 45, 70])
+    mesh = box_with_sag()
+    up, height = underside_plane(mesh, P, all_foreground(len(P)))
+    assert np.allclose(up, [0, 0, 1], atol=1e-9)
+    edge = mesh.edges_unique_length.mean()
+    assert -edge - 1e-9 <= height < 0.0  # below the bottom edge, within the margin
+    assert height > -0.35  # above the apex: the sag is cut
+    v, f = trimesh.remesh.subdivide_to_size(*_box(), max_edge=0.1)
+    assert underside_plane(trimesh.Trimesh(v, f), P, all_foreground(len(P))) is None
+
+
+def _box():
+    b = trimesh.creation.box((2.0, 2.0, 1.0))
+    b.apply_translation([0, 0, 0.5])
+    return b.vertices, b.faces
+
+
+def test_no_seen_vertex_is_a_clear_error():
+    P = rig([20, 45])
+    with pytest.raises(NeusL0Error, match="no vertex.*masks"):
+        underside_plane(box_with_sag(), P, [np.zeros((H, W), dtype=bool)] * len(P))
+
+
+SCALE = np.array([[40.0, 0, 0, 3.0], [0, 40.0, 0, -2.0], [0, 0, 40.0, 7.0], [0, 0, 0, 1.0]])
+
+
+@pytest.mark.parametrize("method", ["dense", "sparse"])
+def test_the_cut_sphere_has_a_flat_cap_at_the_plane(method):
+    """A sphere of radius 0.5 cut at z = -0.2: the lowest vertices lie on the plane, the top is
+    the sphere's, the mesh is closed and its volume is the spherical segment's."""
+    model = _sphere_model(0.5)
+    up, h = np.array([0.0, 0.0, 1.0]), -0.2
+    mesh = extract_mesh(cut_below(model, up, h), SCALE, resolution=96, method=method,
+                        clean=False)
+    v = (mesh.vertices - SCALE[:3, 3]) / 40.0  # back to the normalised frame
+    step = 2.0 / 95
+    assert abs(v[:, 2].min() - h) < 0.5 * step and abs(v[:, 2].max() - 0.5) < 0.5 * step
+    flat = np.abs(v[:, 2] - h) < 1e-3
+    assert flat.sum() > 50  # the cap's vertices are on the plane
+    assert mesh.is_watertight
+    r = 0.5
+    c = r + h  # the height of the cap below the plane
+    expected = (4 / 3 * np.pi * r**3 - np.pi * c**2 * (3 * r - c) / 3) * 40.0**3
+    assert abs(mesh.volume - expected) / expected < 0.02
+
+
+def _sphere_model(radius):
+    class Sdf:
+        def sdf(self, p):
+            return (p.norm(dim=-1) - radius)[:, None]
+
+    class Model:
+        sdf = Sdf()
+
+    return Model()
+
+
+def test_plane_to_normalised_keeps_the_plane():
+    rng = np.random.default_rng(0)
+    up = rng.normal(size=3)
+    up /= np.linalg.norm(up)
+    h = 12.5
+    up_n, h_n = plane_to_normalised((up, h), SCALE)
+    pts_n = rng.normal(size=(50, 3))
+    side_n = pts_n @ up_n - h_n
+    side_w = to_world(pts_n, SCALE) @ up - h
+    assert np.allclose(side_w, 40.0 * side_n)
+
+
+def test_the_command_cuts_a_run_below_what_its_views_see(run_copy, capsys):
+    out = run_copy.parent / "closed.ply"
+    assert main(["mesh", str(run_copy), "--resolution", "48", "--close-underside",
+                 "--out", str(out), "--quiet", "--threads", "1"]) == 0
+    said = capsys.readouterr().out
+    assert "underside" in said
+    mesh = trimesh.load(out)  # open where the run's visual hull cuts the 4-step sphere
+    assert "closed at height" in said, said  # the init sphere's underside is unseen
+    height = float(said.split("closed at height ")[1].split()[0])
+    up = np.array(json.loads(said.split("along up ")[1].split(" (world")[0]))
+    assert (mesh.vertices @ up).min() > height - 1e-3 * np.ptp(mesh.vertices)
+
+
+def test_a_run_whose_scene_lost_its_masks_is_refused(run_copy, scene96_copy, refused):
+    record = run_copy / "run.json"
+    run = json.loads(record.read_text())
+    run["scene"] = str(scene96_copy)
+    record.write_text(json.dumps(run))
+    shutil.rmtree(scene96_copy / "mask")
+    refused(["mesh", str(run_copy), "--resolution", "32", "--close-underside",
+             "--out", str(run_copy.parent / "m.ply")], "mask")
+
+
+def test_the_line_names_the_plane():
+    assert underside_line(None) == "underside: nothing below the lowest seen point"
+    line = underside_line({"up": [0.0, 0.0, 1.0], "height": -2.5})
+    assert line == "underside closed at height -2.500 along up [0.0, 0.0, 1.0] (world units)"
