@@ -100,6 +100,8 @@ class RunSpec:
         planned: train with ``train.budget`` (iterations planned from the measured step
             rate, capacity from the device's ladder: `neus_l0.train.budget.LADDER`) instead
             of cutting the schedule at ``train.max_seconds``.
+        close_underside: close each mesh's unseen underside flat (`neus-l0 mesh
+            --close-underside`; snapshots too).
     """
 
     name: str
@@ -122,6 +124,7 @@ class RunSpec:
     label: str | None = None
     psnr_pixels: int = 10000
     planned: bool = False
+    close_underside: bool = False
 
     @property
     def run_dir(self) -> Path:
@@ -318,7 +321,8 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
             report("snapshots: mesh and score", len(seen) - 1, todo, "snapshot")
         t0 = time.monotonic()
         try:
-            mesh = mesh_from_run(spec.run_dir, spec.resolution, spec.device, ckpt).mesh
+            mesh = mesh_from_run(spec.run_dir, spec.resolution, spec.device, ckpt,
+                                 close_underside=spec.close_underside).mesh
         except NeusL0Error as exc:
             points.append(curve_point(elapsed[iteration], iteration, None, None, str(exc)))
             continue
@@ -457,7 +461,8 @@ def _mesh_stage(spec: RunSpec, timings: dict, report):
 
     t0 = time.monotonic()
     report(f"mesh: marching cubes {spec.resolution}^3")
-    made = mesh_from_run(spec.run_dir, spec.resolution, spec.device)
+    made = mesh_from_run(spec.run_dir, spec.resolution, spec.device,
+                         close_underside=spec.close_underside)
     timings["extract_s"] = time.monotonic() - t0
     mesh_path = export_mesh(made.mesh, spec.run_dir / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0

@@ -52,7 +52,7 @@ SWEEP_NAMES = ("sweep.json", "runs", "scenes", "plots", "results.csv", "results.
 #: Settings that must match between invocations on the same sweep folder.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
                "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels",
-               "snapshots", "planned")
+               "snapshots", "planned", "close_underside")
 
 
 @dataclasses.dataclass
@@ -226,6 +226,8 @@ class SweepSpec:
             besides its end (`snapshot_marks`; 0: the end only).
         planned: budgets are ``train.budget`` (planned iterations and the device's capacity
             ladder) rather than ``train.max_seconds`` cut-offs (`RunSpec.planned`).
+        close_underside: mesh each run with its unseen underside closed flat
+            (`RunSpec.close_underside`).
     """
 
     out_dir: str | Path
@@ -249,6 +251,7 @@ class SweepSpec:
     timeout: float | None = None
     snapshots: int = 0
     planned: bool = False
+    close_underside: bool = False
 
     def __post_init__(self):
         for key, value in device_defaults(self.device).items():
@@ -267,6 +270,7 @@ class SweepSpec:
             # only when set, so that folders from before --snapshots still match
             **({"snapshots": self.snapshots} if self.snapshots else {}),
             **({"planned": True} if self.planned else {}),
+            **({"close_underside": True} if self.close_underside else {}),
         }
 
     def run_spec(self, scene: str, folder: Path, sampler: str, budget: float, seed: int,
@@ -280,7 +284,8 @@ class SweepSpec:
                        resolution=self.resolution, eval_density=self.eval_density,
                        sample_rays=self.sample_rays, config=config,
                        psnr_pixels=self.psnr_pixels, planned=self.planned,
-                       snapshots=snapshot_marks(float(budget), self.snapshots))
+                       snapshots=snapshot_marks(float(budget), self.snapshots),
+                       close_underside=self.close_underside)
 
 
 def plan_runs(spec: SweepSpec, resolved: Sequence[tuple[str, Path]],

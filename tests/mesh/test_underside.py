@@ -26,14 +26,18 @@ W = H = 96
 K = np.array([[110.0, 0.0, (W - 1) / 2], [0.0, 110.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
 
 
-def rig(elevations, n_azimuths=8, distance=6.0, target=(0.0, 0.0, 0.0), rotate=None):
-    """(V, 3, 4) projections of cameras on rings at `elevations` (degrees) around `target`,
-    all looking at it; `rotate` (3, 3) turns the whole rig (its up is then rotate @ z)."""
+def rig(elevations, n_azimuths=8, distance=6.0, target=(0.0, 0.0, 0.0), rotate=None,
+        azimuths=None):
+    """(V, 3, 4) projections of upright cameras on rings at `elevations` (degrees) around
+    `target`, all looking at it; `rotate` (3, 3) turns the whole rig (its up is then
+    rotate @ z); `azimuths` (radians) replaces the even ring."""
     R = np.eye(3) if rotate is None else rotate
     target = np.asarray(target, dtype=np.float64)
     out = []
     for e in np.radians(elevations):
-        for a in np.linspace(0, 2 * np.pi, n_azimuths, endpoint=False) + 0.3 * e:
+        ring = (np.linspace(0, 2 * np.pi, n_azimuths, endpoint=False) + 0.3 * e
+                if azimuths is None else np.asarray(azimuths))
+        for a in ring:
             eye = target + R @ (distance * np.array([np.cos(e) * np.cos(a),
                                                      np.cos(e) * np.sin(a), np.sin(e)]))
             out.append(projection_matrix(K, look_at(eye, target, up=R @ [0, 0, 1.0]))[:3])
@@ -55,11 +59,38 @@ def box_with_sag(depth=0.35):
 
 
 @pytest.mark.parametrize("seed", range(5))
-def test_up_is_the_mean_direction_to_the_cameras_whatever_the_rig_turn(seed):
+def test_up_is_exact_for_an_upright_rig_whatever_its_turn_and_azimuths(seed):
+    """Upright cameras at uneven azimuths (one side of the object only, as DTU's): up is
+    exact, where the mean direction to the cameras tilts far from it."""
+    rng = np.random.default_rng(seed)
     R = Rotation.random(random_state=seed).as_matrix()
-    target = np.random.default_rng(seed).normal(size=3)
-    up = camera_up(rig([25, 50, 70], rotate=R, target=target), target)
+    target = rng.normal(size=3)
+    az = rng.uniform(0, 2.0, size=7)  # radians: a third of the ring
+    P = np.concatenate([rig([e], n_azimuths=1, rotate=R, target=target, azimuths=az)
+                        for e in rng.uniform(20, 70, size=3)])
+    up = camera_up(P, target)
     assert np.allclose(up, R @ [0, 0, 1.0], atol=1e-9)
+    cams = np.stack([np.linalg.lstsq(p[:, :3], -p[:, 3], rcond=None)[0] for p in P])
+    mean = (cams - target) / np.linalg.norm(cams - target, axis=1, keepdims=True)
+    mean = mean.sum(0) / np.linalg.norm(mean.sum(0))
+    assert np.degrees(np.arccos(mean @ R @ [0, 0, 1.0])) > 10  # the mean direction is off
+
+
+def test_a_rolled_rig_falls_back_to_the_mean_direction():
+    """Cameras rolled at random (not upright): up is the mean direction to the cameras."""
+    rng = np.random.default_rng(0)
+    P = []
+    for k, e in enumerate(np.radians(np.repeat([30.0, 60.0], 6))):
+        a = 2 * np.pi * k / 6
+        eye = 6.0 * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+        w2c = look_at(eye, np.zeros(3))
+        roll = Rotation.from_rotvec([0, 0, rng.uniform(-np.pi, np.pi)]).as_matrix()
+        w2c[:3] = roll @ w2c[:3]
+        P.append(projection_matrix(K, w2c)[:3])
+    P = np.stack(P)
+    cams = np.stack([np.linalg.lstsq(p[:, :3], -p[:, 3], rcond=None)[0] for p in P])
+    mean = (cams / np.linalg.norm(cams, axis=1, keepdims=True)).mean(0)
+    assert np.allclose(camera_up(P, np.zeros(3)), mean / np.linalg.norm(mean), atol=1e-9)
 
 
 def test_cameras_all_around_have_no_up():
