@@ -11,10 +11,10 @@ This module finds the plane to close it at, from a first mesh (world units):
 
 - *up* is the direction perpendicular to the cameras' image x axes (photos are upright), or
   for a rolled rig the mean direction from the mesh's centre to the cameras (`camera_up`);
-- a vertex is *seen* by a view when it is the front-most surface at its pixel (a z-buffer
-  of dense surface samples, one pixel's footprint of tolerance) and that pixel is in the
-  view's mask (`seen_counts`); it counts when `min_views` views see it, so that a sample
-  gap in one view's z-buffer does not make a hidden vertex seen;
+- a vertex is *seen* by a view when it is the front-most surface at its pixel and that
+  pixel is in the view's mask (`seen_counts`): a z-buffer of dense surface samples, its
+  3x3 minimum so that no gap between samples lets a hidden vertex through, and one pixel's
+  footprint of depth tolerance;
 - the plane lies `margin` mean edge lengths (half of one by default) below the lowest vertex
   so seen, along up (`underside_plane`).
 
@@ -36,7 +36,8 @@ from neus_l0.data.cameras import decompose_projection, depth_projection, pixel_i
 from neus_l0.errors import NeusL0Error
 
 SAMPLES_PER_PIXEL = 4.0
-"""Surface samples per pixel footprint in the z-buffer (at the nearest camera's scale)."""
+"""Surface samples per pixel footprint in the z-buffer (the finest footprint over the views,
+at the mesh's centre)."""
 
 
 UPRIGHT_SPREAD = 0.02
@@ -50,7 +51,7 @@ def camera_up(projections: np.ndarray, centre: np.ndarray) -> np.ndarray:
     Photos are taken upright: each camera's x axis (image right) is horizontal. Up is then
     the direction most perpendicular to all of them (the smallest eigenvector of
     ``sum_i x_i x_i^T``), exact whatever the azimuths, where the mean direction from the
-    object to the cameras tilts with an uneven ring (1.6 degrees on the demo's 24 views) or a
+    object to the cameras tilts with an uneven ring (1.7 degrees on the demo's 24 views) or a
     rig on one side (DTU). A rig that is not upright (rolled cameras) falls back to that mean
     direction. The sign puts the cameras above.
 
@@ -90,9 +91,8 @@ def seen_counts(mesh: trimesh.Trimesh, projections: np.ndarray,
     """
     P_n = depth_projection(np.asarray(projections, dtype=np.float64))  # camera-z depth rows
     verts = np.asarray(mesh.vertices, dtype=np.float64)
-    # the finest pixel footprint over the views: depth of the mesh's centre / focal
-    foot = min(float(np.abs(P_n[v][2] @ np.r_[verts.mean(0), 1.0]))
-               / abs(decompose_projection(projections[v])[0][0, 0])
+    # the finest pixel footprint over the views, at the mesh's centre
+    foot = min(abs(float(P_n[v][2] @ np.r_[verts.mean(0), 1.0])) * foot_ratio(projections[v])
                for v in range(len(P_n)))
     n = int(min(2e6, max(1e4, SAMPLES_PER_PIXEL * mesh.area / foot**2)))
     samples, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
