@@ -33,6 +33,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="close the mesh's underside, which no demo camera sees, flat just "
                         "below the lowest point the views see (as `neus-l0 mesh "
                         "--close-underside`; default on)")
+    p.add_argument("--drop-outside-masks", action=argparse.BooleanOptionalAction, default=True,
+                   help="drop mesh pieces a view sees outside its mask (as `neus-l0 mesh "
+                        "--drop-outside-masks`; default on)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     accept_overrides(p)
     return p
@@ -65,7 +68,8 @@ def run(args: argparse.Namespace) -> int:
     result = run_demo(DemoOptions(out=out, conf=args.conf, overrides=list(args.overrides),
                                   device=args.device, threads=args.threads,
                                   resolution=args.resolution, quiet=args.quiet,
-                                  close_underside=args.close_underside, budget=budget))
+                                  close_underside=args.close_underside,
+                                  drop_outside_masks=args.drop_outside_masks, budget=budget))
     if result.signal:
         print(f"neus-l0 demo: stopped by {result.signal} at iteration {result.iteration}; "
               f"checkpoint {result.checkpoint} written; run the same command again to "

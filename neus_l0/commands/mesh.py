@@ -20,20 +20,21 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="output mesh: .ply, .obj, .glb, .stl or .off (default RUN/mesh.ply); "
                         "vertex colours (--colors) are kept in .ply and .glb")
     p.add_argument("--clean", action=argparse.BooleanOptionalAction, default=True,
-                   help="drop floating specks: connected pieces whose bounding-box diagonal is "
-                        "under 5%% of the main piece's (default on; thin parts cut off by the "
-                        "grid stay)")
+                   help="drop floating specks: pieces whose bounding-box diagonal is under 5%% "
+                        "of the main piece's (default on; thin parts cut off by the grid stay)")
     p.add_argument("--close-underside", action="store_true",
                    help="close the underside no training view sees flat, under the lowest "
                         "point they see in their masks (not the visual hull's cone; needs "
                         "the run's scene with masks; extracts twice)")
+    p.add_argument("--drop-outside-masks", action="store_true",
+                   help="drop connected pieces that a training view sees outside its mask "
+                        "(over half their vertices off the mask dilated by 2 px)")
     p.add_argument("--colors", action="store_true",
                    help="vertex colours from the colour network (view = -normal)")
     p.add_argument("--texture", action="store_true",
-                   help="write OUT.obj with UVs (xatlas), OUT.mtl and an OUT.png texture "
-                        "baked from the colour network (view = -normal); needs --out *.obj; "
-                        "xatlas takes about 25 s per 50k faces on a 2-core CPU, so add "
-                        "--simplify for big meshes (replaces --colors)")
+                   help="write OUT.obj with UVs (xatlas), OUT.mtl and an OUT.png texture baked "
+                        "from the colour network (view = -normal); needs --out *.obj; xatlas "
+                        "takes ~25 s per 50k faces on 2 cores: --simplify big meshes")
     p.add_argument("--texture-size", type=int, default=1024, metavar="TEXELS",
                    help="about how many texels a side the texture has (1024)")
     p.add_argument("--simplify", type=int, default=None, metavar="FACES",
@@ -41,9 +42,8 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--smooth", type=int, default=0, metavar="ITERS",
                    help="Taubin smoothing iterations, no shrinking (default 0: off)")
     p.add_argument("--min-component", type=float, default=0.0, metavar="FRAC",
-                   help="remove connected components whose bounding-box diagonal is below "
-                        "FRAC of the mesh's (e.g. 0.1; default 0: off; MeshLab's filter, after "
-                        "--clean)")
+                   help="remove components whose bounding-box diagonal is below FRAC of the "
+                        "mesh's (e.g. 0.1; default 0: off; MeshLab's, after --clean)")
     p.add_argument("--close-holes", type=int, default=0, metavar="MAXEDGES",
                    help="close holes with at most MAXEDGES boundary edges (e.g. 100; "
                         "default 0: off)")
@@ -108,22 +108,22 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.device import pick_device
     from neus_l0.mesh.cleanup import clean_up
     from neus_l0.mesh.extract import export_mesh, vertex_colors
-    from neus_l0.mesh.from_run import mesh_from_run
-    from neus_l0.mesh.underside import underside_line
+    from neus_l0.mesh.from_run import mask_report, mesh_from_run
 
     out, method, options = _check(args)
     device = pick_device(args.device)
     use_threads(args.threads, device)
     t0 = time.monotonic()
     made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
-                         progress=not args.quiet, close_underside=args.close_underside)
+                         progress=not args.quiet, close_underside=args.close_underside,
+                         drop_outside_masks=args.drop_outside_masks)
     mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "
           f"evaluations ({st['sdf_evals'] / st['dense_evals']:.1%} of the dense grid), "
           f"{st['seconds']:.1f} s")
-    if args.close_underside:
-        print(underside_line(mesh.metadata["underside_plane"]))
+    for line in mask_report(mesh.metadata):
+        print(line)
     if options.any():
         n_before = len(mesh.faces)
         mesh = clean_up(mesh, options)

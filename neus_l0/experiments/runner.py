@@ -102,6 +102,8 @@ class RunSpec:
             of cutting the schedule at ``train.max_seconds``.
         close_underside: close each mesh's unseen underside flat (`neus-l0 mesh
             --close-underside`; snapshots too).
+        drop_outside_masks: drop each mesh's pieces a view sees outside its mask (`neus-l0
+            mesh --drop-outside-masks`; snapshots too).
     """
 
     name: str
@@ -125,6 +127,7 @@ class RunSpec:
     psnr_pixels: int = 10000
     planned: bool = False
     close_underside: bool = False
+    drop_outside_masks: bool = False
 
     @property
     def run_dir(self) -> Path:
@@ -322,7 +325,8 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         t0 = time.monotonic()
         try:
             mesh = mesh_from_run(spec.run_dir, spec.resolution, spec.device, ckpt,
-                                 close_underside=spec.close_underside).mesh
+                                 close_underside=spec.close_underside,
+                                 drop_outside_masks=spec.drop_outside_masks).mesh
         except NeusL0Error as exc:
             points.append(curve_point(elapsed[iteration], iteration, None, None, str(exc)))
             continue
@@ -462,7 +466,8 @@ def _mesh_stage(spec: RunSpec, timings: dict, report):
     t0 = time.monotonic()
     report(f"mesh: marching cubes {spec.resolution}^3")
     made = mesh_from_run(spec.run_dir, spec.resolution, spec.device,
-                         close_underside=spec.close_underside)
+                         close_underside=spec.close_underside,
+                         drop_outside_masks=spec.drop_outside_masks)
     timings["extract_s"] = time.monotonic() - t0
     mesh_path = export_mesh(made.mesh, spec.run_dir / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0

@@ -52,7 +52,8 @@ SWEEP_NAMES = ("sweep.json", "runs", "scenes", "plots", "results.csv", "results.
 #: Settings that must match between invocations on the same sweep folder.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
                "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels",
-               "snapshots", "planned", "close_underside")
+               "snapshots", "planned", "close_underside",
+               "drop_outside_masks")
 
 
 @dataclasses.dataclass
@@ -228,6 +229,7 @@ class SweepSpec:
             ladder) rather than ``train.max_seconds`` cut-offs (`RunSpec.planned`).
         close_underside: mesh each run with its unseen underside closed flat
             (`RunSpec.close_underside`).
+        drop_outside_masks: drop each mesh's pieces a view sees outside its mask.
     """
 
     out_dir: str | Path
@@ -252,6 +254,7 @@ class SweepSpec:
     snapshots: int = 0
     planned: bool = False
     close_underside: bool = False
+    drop_outside_masks: bool = False
 
     def __post_init__(self):
         for key, value in device_defaults(self.device).items():
@@ -271,6 +274,7 @@ class SweepSpec:
             **({"snapshots": self.snapshots} if self.snapshots else {}),
             **({"planned": True} if self.planned else {}),
             **({"close_underside": True} if self.close_underside else {}),
+            **({"drop_outside_masks": True} if self.drop_outside_masks else {}),
         }
 
     def run_spec(self, scene: str, folder: Path, sampler: str, budget: float, seed: int,
@@ -285,7 +289,8 @@ class SweepSpec:
                        sample_rays=self.sample_rays, config=config,
                        psnr_pixels=self.psnr_pixels, planned=self.planned,
                        snapshots=snapshot_marks(float(budget), self.snapshots),
-                       close_underside=self.close_underside)
+                       close_underside=self.close_underside,
+                       drop_outside_masks=self.drop_outside_masks)
 
 
 def plan_runs(spec: SweepSpec, resolved: Sequence[tuple[str, Path]],

@@ -20,7 +20,8 @@ from neus_l0.data.cameras import read_masks, read_world_mats
 from neus_l0.errors import NeusL0Error
 from neus_l0.fields.model import NeuSModel
 from neus_l0.mesh.extract import extract_mesh, progress_bars
-from neus_l0.mesh.underside import cut_below, underside_plane
+from neus_l0.mesh.mask_outliers import mask_outliers
+from neus_l0.mesh.underside import cut_below, underside_line, underside_plane
 from neus_l0.run.checkpoints import load_trained_model
 
 
@@ -49,7 +50,7 @@ class RunMesh:
 def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.device = "cpu",
                   checkpoint: str | Path | None = None, clean: bool = True,
                   method: str = "auto", progress: bool = False,
-                  close_underside: bool = False) -> RunMesh:
+                  close_underside: bool = False, drop_outside_masks: bool = False) -> RunMesh:
     """Marching cubes of a run's SDF at `resolution`^3, restricted to the run's visual hull
     (``RUN/hull.pt``, when it has one).
 
@@ -64,6 +65,8 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         close_underside: close the underside no training view sees flat, at the plane
             `neus_l0.mesh.underside.underside_plane` finds on a first mesh (then extracted
             again, cut there); needs the run's scene with masks.
+        drop_outside_masks: drop the connected pieces that a training view sees outside its
+            mask (`neus_l0.mesh.mask_outliers`); needs the run's scene with masks.
 
     Raises:
         NeusL0Error: no usable checkpoint, or no surface in the field.
@@ -71,43 +74,47 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
     model, cfg, info = load_trained_model(run_dir, device, checkpoint)
     scale_mat = np.asarray(info["scale_mat"], dtype=np.float64)
     hull = load_run_hull(run_dir, device)
+    views = training_views(run_dir) if close_underside or drop_outside_masks else None
     with progress_bars(progress):
         mesh = extract_mesh(model, scale_mat, resolution=resolution, clean=clean,
                             device=device, method=method, hull=hull)
-        plane = run_underside_plane(run_dir, mesh) if close_underside else None
+        plane = underside_plane(mesh, *views) if close_underside else None
         if plane is not None:
             cut = cut_below(model, *plane_to_normalised(plane, scale_mat))
             mesh = extract_mesh(cut, scale_mat, resolution=resolution, clean=clean,
                                 device=device, method=method, hull=hull)
+    meta = dict(mesh.metadata)
     if close_underside:
-        mesh.metadata["underside_plane"] = (None if plane is None else
-                                            {"up": plane[0].tolist(), "height": plane[1]})
+        meta["underside_plane"] = (None if plane is None else
+                                   {"up": plane[0].tolist(), "height": plane[1]})
+    if drop_outside_masks:
+        mesh, meta["dropped_outside_masks"] = mask_outliers(mesh, *views)
+    mesh.metadata.update(meta)
     return RunMesh(mesh, model, cfg, info)
 
 
-def run_underside_plane(run_dir: str | Path, mesh: trimesh.Trimesh
-                        ) -> tuple[np.ndarray, float] | None:
-    """`underside_plane` (world units) of a run's first mesh, seen by the run's training
-    views (``run.json``: its scene and ``views.train``) through their masks.
+def training_views(run_dir: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The run's training views (``run.json``: its scene and ``views.train``): their (V, 3, 4)
+    projections world -> pixel and V (H, W) bool masks.
 
     Raises:
-        NeusL0Error: no ``run.json``, its scene is gone or has no masks.
+        NeusL0Error: no ``run.json``, its scene is gone or lacks a training view's mask.
     """
     record = Path(run_dir) / "run.json"
     try:
         run = json.loads(record.read_text())
         scene = Path(run["scene"])
     except (OSError, ValueError, KeyError, TypeError) as e:
-        raise NeusL0Error(f"{record}: cannot read the run's scene for --close-underside "
-                          f"({e})") from None
+        raise NeusL0Error(f"{record}: cannot read the run's scene, which the masks come "
+                          f"from ({e})") from None
     projections = read_world_mats(scene)
     masks = read_masks(scene)
     train = run.get("views", {}).get("train") or list(range(len(projections)))
     missing = [v for v in train if v not in masks]
     if missing:
         raise NeusL0Error(f"{scene / 'mask'}: no mask for training view(s) {missing[:5]}; "
-                          "--close-underside needs the masks")
-    return underside_plane(mesh, projections[train], [masks[v] for v in train])
+                          "--close-underside and --drop-outside-masks need the masks")
+    return projections[train], [masks[v] for v in train]
 
 
 def plane_to_normalised(plane: tuple[np.ndarray, float], scale_mat: np.ndarray
@@ -121,3 +128,18 @@ def plane_to_normalised(plane: tuple[np.ndarray, float], scale_mat: np.ndarray
         raise NeusL0Error("--close-underside: the scene's scale_mat is not a uniform scale "
                           "and shift")
     return up, float((height - up @ t) / s)
+
+
+def mask_report(metadata: dict) -> list[str]:
+    """What the mask-aware steps did (`mesh_from_run`'s ``metadata``), a line each: the
+    underside's plane (`underside_line`) and the pieces dropped outside the masks."""
+    lines = []
+    if "underside_plane" in metadata:
+        lines.append(underside_line(metadata["underside_plane"]))
+    if "dropped_outside_masks" in metadata:
+        dropped = metadata["dropped_outside_masks"]
+        lines.append("outside the masks: nothing dropped" if not dropped else
+                     f"outside the masks: dropped {len(dropped)} piece(s), "
+                     + ", ".join(f"{d['faces']} faces {d['diagonal']:.1f} across "
+                                 f"(outside in {d['views']} views)" for d in dropped))
+    return lines

@@ -46,6 +46,9 @@ class DemoOptions:
     close_underside: bool = True
     """Close the mesh's underside, which no demo camera sees, flat (`neus-l0 mesh
     --close-underside`)."""
+    drop_outside_masks: bool = True
+    """Drop the mesh's pieces that a view sees outside its mask (`neus-l0 mesh
+    --drop-outside-masks`)."""
     budget: float = 0.0
     """Seconds for the training stage (``train.budget``: compile, steps and the final
     checkpoint; the iterations planned from the measured step rate); 0: the config's
@@ -136,7 +139,8 @@ def run_demo(opts: DemoOptions) -> DemoResult:
         "mesh": {"path": str(paths["mesh"]), "vertices": len(mesh.vertices),
                  "faces": len(mesh.faces), "resolution": opts.resolution,
                  "close_underside": opts.close_underside,
-                 "underside_plane": mesh.metadata.get("underside_plane")},
+                 "underside_plane": mesh.metadata.get("underside_plane"),
+                 "dropped_outside_masks": mesh.metadata.get("dropped_outside_masks")},
         "sampler": cfg.sampler.name,
         "conf": str(opts.conf),
         "device": device,
@@ -178,7 +182,8 @@ def _mesh_score_draw(opts: DemoOptions, paths: dict[str, Path], device: str,
     t0 = time.monotonic()
     print(f"[3/4] extracting the mesh at {opts.resolution}^3 ...", flush=True)
     mesh = mesh_from_run(paths["run"], opts.resolution, device, progress=not opts.quiet,
-                         close_underside=opts.close_underside).mesh
+                         close_underside=opts.close_underside,
+                         drop_outside_masks=opts.drop_outside_masks).mesh
     mesh_path = export_mesh(mesh, paths["mesh"])
     timings["mesh_s"] = time.monotonic() - t0
 

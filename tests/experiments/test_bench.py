@@ -136,16 +136,18 @@ def test_other_settings_on_the_same_folder_are_refused(sweep):
                              holdout=2), progress=False)
 
 
-def test_closing_the_underside_is_a_setting_of_the_sweep_and_of_each_run(sweep, tmp_path):
-    """`bench --close-underside` reaches every run's spec, is recorded in sweep.json, and a
-    folder meshed one way refuses the other."""
+def test_the_mask_aware_mesh_steps_are_settings_of_the_sweep_and_of_each_run(sweep, tmp_path):
+    """`bench --close-underside` and `--drop-outside-masks` reach every run's spec, are
+    recorded in sweep.json, and a folder meshed one way refuses the other."""
     out, _ = sweep
-    spec = sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET], [0], close_underside=True)
+    spec = sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET], [0], close_underside=True,
+                      drop_outside_masks=True)
     assert spec.settings({})["close_underside"] is True
+    assert spec.settings({})["drop_outside_masks"] is True
     assert "close_underside" not in sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET],
                                                [0]).settings({})
     run = spec.run_spec("demo", tmp_path, "l0", BUDGET, 0, {})
-    assert run.close_underside is True
+    assert run.close_underside is True and run.drop_outside_masks is True
     with pytest.raises(NeusL0Error, match="other settings"):
         run_sweep(sweep_spec(out, [str(out / "scenes" / "demo")], ["hvs"], [BUDGET], [0],
                              close_underside=True), progress=False)

@@ -1,0 +1,123 @@
+"""`neus-l0 mesh --drop-outside-masks`: connected pieces that a view sees outside its mask are
+dropped, the object's pieces (thin or hidden) kept (`neus_l0.mesh.mask_outliers`)."""
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from neus_l0.cli import main
+from neus_l0.data.cameras import decompose_projection, look_at, projection_matrix
+from neus_l0.errors import NeusL0Error
+from neus_l0.mesh.mask_outliers import mask_outliers, outside_share
+
+W = H = 64
+K = np.array([[70.0, 0.0, (W - 1) / 2], [0.0, 70.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def cameras(elevations=(25, 55), n=6, distance=7.0):
+    out = []
+    for e in np.radians(elevations):
+        for a in np.linspace(0, 2 * np.pi, n, endpoint=False) + e:
+            eye = distance * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+            out.append(projection_matrix(K, look_at(eye, np.zeros(3)))[:3])
+    return np.stack(out)
+
+
+def box(extents, centre):
+    b = trimesh.creation.box(extents)
+    b.apply_translation(centre)
+    return b
+
+
+def silhouettes(P, boxes):
+    """V (H, W) bool: the pixels whose centre ray meets any of the axis-aligned `boxes`
+    (meshes; a slab test on their bounds)."""
+    xs, ys = np.meshgrid(np.arange(W), np.arange(H))
+    pix = np.stack([xs.ravel(), ys.ravel(), np.ones(W * H)], 1)
+    out = []
+    for p in P:
+        Kp, c2w = decompose_projection(p)
+        d = pix @ np.linalg.inv(Kp).T @ c2w[:3, :3].T  # (HW, 3)
+        o = c2w[:3, 3]
+        hit = np.zeros(W * H, bool)
+        for b in boxes:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t0, t1 = (b.bounds[0] - o) / d, (b.bounds[1] - o) / d
+            near = np.nanmax(np.minimum(t0, t1), axis=1)
+            far = np.nanmin(np.maximum(t0, t1), axis=1)
+            hit |= (far >= near) & (far > 0)
+        out.append(hit.reshape(H, W))
+    return out
+
+
+OBJECT = box((2.0, 2.0, 1.0), (0, 0, 0.5))
+ROD = box((0.06, 0.06, 1.2), (0.6, 0.6, 1.6))  # thin, apart from the box (a grid's cut)
+HIDDEN = trimesh.creation.icosphere(radius=0.2).apply_translation((0, 0, 0.5))
+FLOATER = trimesh.creation.icosphere(radius=0.15).apply_translation((1.6, 0.0, 0.8))
+
+
+@pytest.fixture(scope="module")
+def views():
+    P = cameras()
+    return P, silhouettes(P, [OBJECT, ROD])
+
+
+def test_the_share_outside_is_counted_per_view(views):
+    P, masks = views
+    pts = np.array([[0.0, 0.0, 1.0], [0.5, -0.5, 0.5], [1.6, 0.0, 0.8], [3.0, 3.0, 0.0]])
+    full = outside_share(pts, P, [np.ones((H, W), bool)] * len(P))
+    empty = outside_share(pts, P, [np.zeros((H, W), bool)] * len(P))
+    assert np.allclose(full, 0.0) and np.allclose(empty, 1.0)
+    share = outside_share(pts[:2], P, masks)  # two points on the object
+    assert np.allclose(share, 0.0)
+
+
+def test_a_floater_goes_the_object_its_thin_part_and_a_hidden_piece_stay(views):
+    P, masks = views
+    mesh = trimesh.util.concatenate([OBJECT, ROD, HIDDEN, FLOATER])
+    kept, dropped = mask_outliers(mesh, P, masks)
+    assert len(dropped) == 1 and dropped[0]["faces"] == len(FLOATER.faces)
+    assert dropped[0]["views"] >= 6
+    assert abs(dropped[0]["diagonal"] - np.linalg.norm(np.ptp(FLOATER.vertices, 0))) < 1e-9
+    assert len(kept.faces) == len(OBJECT.faces) + len(ROD.faces) + len(HIDDEN.faces)
+    assert np.isclose(kept.area, OBJECT.area + ROD.area + HIDDEN.area)
+
+
+def test_a_floater_within_the_masks_margin_stays(views):
+    """A piece one pixel off the silhouette is within the 2-pixel margin (mask error)."""
+    P, masks = views
+    near = trimesh.creation.icosphere(radius=0.05).apply_translation((1.03, 0.0, 0.5))
+    kept, dropped = mask_outliers(trimesh.util.concatenate([OBJECT, near]), P, masks)
+    assert dropped == [] and len(kept.faces) == len(OBJECT.faces) + len(near.faces)
+    _, strict = mask_outliers(trimesh.util.concatenate([OBJECT, near]), P, masks,
+                              dilate_px=0)
+    assert len(strict) == 1
+
+
+def test_one_piece_is_never_split_and_all_outside_is_an_error(views):
+    P, masks = views
+    same, none = mask_outliers(OBJECT, P, masks)
+    assert same is OBJECT and none == []
+    with pytest.raises(NeusL0Error, match="every piece.*masks"):
+        mask_outliers(trimesh.util.concatenate([OBJECT, FLOATER]), P,
+                      [np.zeros((H, W), bool)] * len(P))
+
+
+def test_the_command_reports_what_it_dropped(run_copy, capsys):
+    out = run_copy.parent / "m.ply"
+    assert main(["mesh", str(run_copy), "--resolution", "32", "--drop-outside-masks",
+                 "--out", str(out), "--quiet", "--threads", "1"]) == 0
+    said = capsys.readouterr().out
+    assert "outside the masks:" in said
+    assert trimesh.load(out).faces.shape[0] > 0
+
+
+def test_the_run_record_names_the_scene_it_reads(run_copy, refused):
+    record = run_copy / "run.json"
+    run = json.loads(record.read_text())
+    del run["scene"]
+    record.write_text(json.dumps(run))
+    refused(["mesh", str(run_copy), "--resolution", "32", "--drop-outside-masks",
+             "--out", str(run_copy.parent / "m.ply")], "run.json")
