@@ -69,7 +69,9 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
             mask (`neus_l0.mesh.mask_outliers`); needs the run's scene with masks.
 
     Raises:
-        NeusL0Error: no usable checkpoint, or no surface in the field.
+        NeusL0Error: no usable checkpoint, or no surface in the field; with
+            `close_underside` or `drop_outside_masks`, the run's scene or a training view's
+            mask missing (`training_views`).
     """
     model, cfg, info = load_trained_model(run_dir, device, checkpoint)
     scale_mat = np.asarray(info["scale_mat"], dtype=np.float64)
