@@ -21,10 +21,10 @@ from collections.abc import Sequence
 
 import numpy as np
 import trimesh
-from scipy.ndimage import binary_dilation
 
 from neus_l0.data.cameras import depth_projection, pixel_indices
 from neus_l0.errors import NeusL0Error
+from neus_l0.evaluation.cull import dilate_mask
 
 DILATE_PX = 2
 """Mask dilation of the test, in pixels (the visual hull's default margin)."""
@@ -67,8 +67,7 @@ def mask_outliers(mesh: trimesh.Trimesh, projections: np.ndarray,
     Raises:
         NeusL0Error: every piece is an outlier (the masks do not fit the cameras).
     """
-    dilated = [binary_dilation(m, iterations=dilate_px) if dilate_px > 0 else m
-               for m in masks]
+    dilated = [dilate_mask(m, dilate_px) for m in masks]  # a disk, as `eval --cull` does
     pieces = mesh.split(only_watertight=False)
     if len(pieces) <= 1:
         return mesh, []

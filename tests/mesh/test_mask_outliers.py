@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from neus_l0.cli import main
 from neus_l0.data.cameras import decompose_projection, look_at, projection_matrix
 from neus_l0.errors import NeusL0Error
 from neus_l0.mesh.mask_outliers import mask_outliers, outside_share
@@ -103,15 +102,6 @@ def test_one_piece_is_never_split_and_all_outside_is_an_error(views):
     with pytest.raises(NeusL0Error, match="every piece.*masks"):
         mask_outliers(trimesh.util.concatenate([OBJECT, FLOATER]), P,
                       [np.zeros((H, W), bool)] * len(P))
-
-
-def test_the_command_reports_what_it_dropped(run_copy, capsys):
-    out = run_copy.parent / "m.ply"
-    assert main(["mesh", str(run_copy), "--resolution", "32", "--drop-outside-masks",
-                 "--out", str(out), "--quiet", "--threads", "1"]) == 0
-    said = capsys.readouterr().out
-    assert "outside the masks:" in said
-    assert trimesh.load(out).faces.shape[0] > 0
 
 
 def test_the_run_record_names_the_scene_it_reads(run_copy, refused):

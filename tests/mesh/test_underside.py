@@ -183,11 +183,12 @@ def test_plane_to_normalised_keeps_the_plane():
 
 
 def test_the_command_cuts_a_run_below_what_its_views_see(run_copy, capsys):
+    """Both mask-aware steps on a trained run: the cut, and the report of both."""
     out = run_copy.parent / "closed.ply"
     assert main(["mesh", str(run_copy), "--resolution", "48", "--close-underside",
-                 "--out", str(out), "--quiet", "--threads", "1"]) == 0
+                 "--drop-outside-masks", "--out", str(out), "--quiet", "--threads", "1"]) == 0
     said = capsys.readouterr().out
-    assert "underside" in said
+    assert "outside the masks:" in said
     mesh = trimesh.load(out)  # open where the run's visual hull cuts the 4-step sphere
     assert "closed at height" in said, said  # the init sphere's underside is unseen
     height = float(said.split("closed at height ")[1].split()[0])
