@@ -117,7 +117,10 @@ def chromium(size: tuple[int, int] = (1280, 800), timeout: float = 30.0):
     exe = find_chromium()
     if exe is None:
         raise NeusL0Error("chromium: not found on PATH (apt-get install -y chromium)")
-    with tempfile.TemporaryDirectory(prefix="neus-l0-chromium-") as profile:
+    # Chromium's helper processes can still write the profile while it is removed: a
+    # leftover file in our own temporary folder must not fail the page's capture
+    with tempfile.TemporaryDirectory(prefix="neus-l0-chromium-",
+                                     ignore_cleanup_errors=True) as profile:
         proc = subprocess.Popen([exe, *FLAGS, f"--user-data-dir={profile}",
                                  f"--window-size={size[0]},{size[1]}", "about:blank"],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
