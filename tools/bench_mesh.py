@@ -26,7 +26,7 @@ CASE = r"""
 import json, resource, sys, time, tracemalloc
 import torch
 from neus_l0.synthetic.shapes import Sphere
-from neus_l0.mesh import marching_cubes, sdf_grid, sparse_marching_cubes
+from neus_l0.mesh.extract import marching_cubes, sdf_grid, sparse_marching_cubes
 
 method, kind, device = sys.argv[1], sys.argv[2], sys.argv[4]
 R, threads = int(sys.argv[3]), int(sys.argv[5])

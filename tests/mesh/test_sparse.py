@@ -229,7 +229,7 @@ def test_sparse_1024_sphere_fits_in_memory():
     code = (
         "import resource, torch, trimesh\n"
         "from neus_l0.synthetic.shapes import Sphere\n"
-        "from neus_l0.mesh import sparse_marching_cubes\n"
+        "from neus_l0.mesh.extract import sparse_marching_cubes\n"
         "V, F, st = sparse_marching_cubes(Sphere((0.0, 0.0, 0.0), 0.5), 1024)\n"
         "m = trimesh.Trimesh(V, F, process=False)\n"
         "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, st.sdf_evals, "
