@@ -227,7 +227,8 @@ def _static_setup(scene: Scene, cfg: Config, run_dir: Path) -> StepSetup:
         print("neus-l0: warning: train.photo needs at least 2 training views, this run has "
               f"{scene.n_views}: the photometric term is off", file=sys.stderr, flush=True)
     elif ph.weight > 0:
-        setup.photo = PhotoContext.from_scene(scene, ph.sources, ph.patch, ph.stride, ph.best)
+        setup.photo = PhotoContext.from_scene(scene, ph.sources, ph.patch, ph.stride, ph.best,
+                                              ph.normal_sources)
     return setup
 
 

@@ -54,7 +54,9 @@ class PhotoContext:
         centres: (V, 3) camera centres.
         sources: (V, M) each view's M nearest other views (`nearest_views`).
         offsets: (P, 2) the patch's pixel offsets (`patch_offsets`).
-        best: how many of the M sources count per ray.
+        best: how many of a ray's sources count.
+        normal_sources: per ray, this many more sources chosen by its surface normal
+            (`normal_views`; 0: none).
     """
 
     gray: Tensor
@@ -66,10 +68,11 @@ class PhotoContext:
     sources: Tensor
     offsets: Tensor
     best: int
+    normal_sources: int = 0
 
     @classmethod
     def from_scene(cls, scene: Scene, n_sources: int, patch: int, stride: int,
-                   best: int) -> PhotoContext:
+                   best: int, normal_sources: int = 0) -> PhotoContext:
         """The context of a scene's (training) views.
 
         Raises:
@@ -83,9 +86,10 @@ class PhotoContext:
         rays = scene.ray_matrices
         proj = torch.linalg.inv(rays.double()).to(rays.dtype)
         sources = nearest_views(scene.centres, n_sources)
+        extra = max(0, min(normal_sources, scene.n_views - 1 - sources.shape[1]))
         return cls(gray, scene.height, scene.width, rays, proj, scene.centres, sources,
                    patch_offsets(patch, stride).to(scene.images.device),
-                   max(1, min(best, sources.shape[1])))
+                   max(1, min(best, sources.shape[1] + extra)), extra)
 
 
 def nearest_views(centres: Tensor, k: int) -> Tensor:
@@ -101,6 +105,26 @@ def nearest_views(centres: Tensor, k: int) -> Tensor:
     cos.fill_diagonal_(-2.0)  # never its own source
     k = max(0, min(k, v - 1))
     return cos.topk(k, dim=-1).indices.to(centres.device)
+
+
+def normal_views(centres: Tensor, points: Tensor, normals: Tensor, own: Tensor,
+                 taken: Tensor, k: int) -> Tensor:
+    """(B, k) per point, the k views that look most squarely at it: the largest cosine
+    between its normal and the direction from it to the camera, never its own view nor the
+    views already `taken`. A cavity's floor is seen by the views above it, which the nearest
+    views of a camera that looks at it at a slant often are not (`tools/source_visibility.py`).
+
+    Args:
+        centres: (V, 3) camera centres; points, normals: (B, 3) (unit normals);
+        own: (B,) each point's view; taken: (B, M) views already chosen (M may be 0);
+        k: 1 <= k <= V - 1 - M.
+    """
+    d = centres[None, :, :] - points[:, None, :]  # (B, V, 3)
+    cos = (d * normals[:, None, :]).sum(-1) / d.norm(dim=-1).clamp_min(1e-12)
+    cos = cos.scatter(1, own[:, None], -3.0)
+    if taken.shape[1]:
+        cos = cos.scatter(1, taken, -3.0)
+    return cos.topk(k, dim=-1).indices
 
 
 def patch_offsets(size: int, stride: int) -> Tensor:
@@ -314,6 +338,10 @@ def photometric_term(ctx: PhotoContext, sdf: Callable[[Tensor], Tensor], rays: P
     ref, ref_in = sample_gray(ctx.gray, ctx.height, ctx.width, rays.view[:, None], pix)
     pts = plane_points(rays.origins, ctx.rays[rays.view], pix, x, n)  # (B, P, 3)
     src_views = ctx.sources[rays.view]  # (B, M)
+    if ctx.normal_sources > 0:
+        more = normal_views(ctx.centres, x.detach(), n, rays.view, src_views,
+                            ctx.normal_sources)
+        src_views = torch.cat([src_views, more], dim=1)  # (B, M + K)
     uv, z = project(pts, ctx.proj[src_views], ctx.centres[src_views])
     vals, inside = sample_gray(ctx.gray, ctx.height, ctx.width, src_views[..., None], uv)
     facing = ((ctx.centres[src_views] - x.detach()[:, None, :]) * n[:, None, :]).sum(-1) > 0

@@ -25,6 +25,7 @@ from neus_l0.train.photometric import (
     best_cost,
     ncc,
     nearest_views,
+    normal_views,
     occluded,
     patch_offsets,
     photometric_term,
@@ -125,6 +126,38 @@ def test_nearest_views_match_a_plain_sort(seed, v, k):
         # the same angles in the same order (ties may swap indices)
         assert [angles[j] for j in got[i].tolist()] == pytest.approx(
             [angles[j] for j in want[:got.shape[1]]], abs=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(3, 12), st.integers(0, 4), st.integers(1, 4))
+def test_normal_views_match_a_plain_sort(seed, v, m, k):
+    """Each point's k views of largest cos(normal, direction to the camera), never its own
+    nor the taken ones: against a float64 loop."""
+    m = min(m, v - 2)
+    k = min(k, v - 1 - m)
+    g = torch.Generator().manual_seed(seed)
+    centres = torch.randn(v, 3, generator=g, dtype=torch.float64) * 3
+    b = 6
+    pts = torch.randn(b, 3, generator=g, dtype=torch.float64) * 0.3
+    n = torch.randn(b, 3, generator=g, dtype=torch.float64)
+    n = n / n.norm(dim=-1, keepdim=True)
+    own = torch.randint(0, v, (b,), generator=g)
+    taken = torch.stack([torch.tensor([j for j in torch.randperm(v, generator=g).tolist()
+                                       if j != int(own[i])][:m], dtype=torch.long)
+                         for i in range(b)]) if m else torch.zeros(b, 0, dtype=torch.long)
+    got = normal_views(centres, pts, n, own, taken, k)
+    assert got.shape == (b, k)
+    for i in range(b):
+        cos = {}
+        for j in range(v):
+            d = (centres[j] - pts[i]).tolist()
+            cos[j] = sum(a * c for a, c in zip(d, n[i].tolist(), strict=True)) / math.sqrt(
+                sum(a * a for a in d))
+        allowed = [j for j in range(v) if j != int(own[i]) and j not in taken[i].tolist()]
+        want = sorted(allowed, key=lambda j: -cos[j])[:k]
+        assert set(got[i].tolist()) <= set(allowed)
+        assert [cos[j] for j in got[i].tolist()] == pytest.approx([cos[j] for j in want],
+                                                                  abs=1e-12)
 
 
 @settings(max_examples=40, deadline=None)
@@ -280,6 +313,35 @@ def test_the_term_finds_the_textured_planes_depth():
         assert costs == sorted(costs) and costs[2] > 3 * costs[0]
 
 
+def test_normal_sources_find_a_view_that_the_nearest_do_not():
+    """A cavity floor's nearest sources see a wall: here view 0's nearest source shows noise.
+    With it alone the plane costs a lot; two sources more, chosen by the normal, find views
+    of the plane, and the cost at the plane drops below a tenth (best 1; a few rays' patches
+    leave both of the others' images and still read the noise)."""
+    scene = plane_scene()
+    near = int(nearest_views(scene.centres, 1)[0, 0])
+    noise = torch.rand(scene.height, scene.width, generator=torch.Generator().manual_seed(0))
+    images = scene.images.clone()
+    images[near] = noise[..., None].expand(-1, -1, 3)
+    scene = Scene(root=None, images=images, masks=scene.masks, has_masks=False,
+                  intrinsics=scene.intrinsics, c2w=scene.c2w, scale_mat=np.eye(4),
+                  image_names=scene.image_names)
+    alone = PhotoContext.from_scene(scene, n_sources=1, patch=5, stride=1, best=1)
+    more = PhotoContext.from_scene(scene, n_sources=1, patch=5, stride=1, best=1,
+                                   normal_sources=2)
+    assert more.normal_sources == 2 and alone.normal_sources == 0
+    cost_alone, counted = term_on_plane(scene, alone, torch.tensor(0.0))
+    cost_more, counted_more = term_on_plane(scene, more, torch.tensor(0.0))
+    assert counted_more.item() >= counted.item() > 20  # a source more can only add rays
+    assert cost_alone.item() > 0.3 and cost_more.item() < 0.1 * cost_alone.item()
+    # and the normal's source still pulls a lifted surface back down
+    for step in (0.05, 0.1):  # 1 and 2 pixels of parallax
+        h = torch.tensor(step, requires_grad=True)
+        cost, _ = term_on_plane(scene, more, h)
+        cost.backward()
+        assert cost.item() > cost_more.item() and h.grad.item() > 0
+
+
 def test_rays_that_may_not_count_do_not():
     scene = plane_scene()
     ctx = PhotoContext.from_scene(scene, n_sources=3, patch=5, stride=1, best=2)
@@ -409,6 +471,7 @@ def test_the_step_with_the_term(small, sphere_scene, tmp_path):
 @pytest.mark.parametrize("override, match", [
     ("train.photo.patch=4", "odd"),
     ("train.photo.best=9", "at most"),
+    ("train.photo.normal_sources=-1", "normal_sources"),
     ("train.photo.weight=-1", "weight"),
 ])
 def test_bad_settings_are_named(override, match):
