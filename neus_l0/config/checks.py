@@ -143,6 +143,7 @@ RULES: dict[tuple[type, str], Range] = {
     (PhotoConfig, "weight"): at_least(0, "0: off"),
     (PhotoConfig, "sources"): at_least(1),
     (PhotoConfig, "best"): at_least(1),
+    (PhotoConfig, "normal_sources"): at_least(0, "0: none"),
     (PhotoConfig, "patch"): at_least(1),
     (PhotoConfig, "stride"): at_least(1),
     (PhotoConfig, "max_sdf"): positive(),
@@ -225,8 +226,6 @@ def _check_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]) -
 def _check_photo(obj: PhotoConfig, bad: Callable[[str, str], ConfigError]) -> None:
     if obj.patch % 2 == 0:
         raise bad("patch", f"{obj.patch}: must be odd (the patch is centred on the ray's pixel)")
-    if obj.normal_sources < 0:
-        raise bad("normal_sources", f"{obj.normal_sources}: must be >= 0")
     if obj.best > obj.sources + obj.normal_sources:
         raise bad("best", f"{obj.best}: at most train.photo.sources + normal_sources "
                   f"({obj.sources} + {obj.normal_sources})")
