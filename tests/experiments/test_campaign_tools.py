@@ -286,6 +286,15 @@ def test_source_visibility_sees_each_pixel_from_its_own_view_and_counts_shares(t
         (tiny_scene / "features.json").read_text())["features"]}
     with pytest.raises(SystemExit, match="no feature named"):
         tool.visibility_table(tiny_scene, ["no such"], 3, 1.5)
+    # per-point sources: the same as `seen_by` when every point has the same ones
+    same = np.broadcast_to(np.array([far, v]), (int(hit.sum()), 2))
+    assert (tool.seen_by_each(pts[v][hit], same, depth, projections, 0.5)
+            == tool.seen_by(pts[v][hit], np.array([far, v]), depth, projections, 0.5)).all()
+    # sources by the normal only add: no feature is seen by none more often with them
+    more = tool.visibility_table(tiny_scene, None, 3, 1.5, normal_sources=2)
+    for r, m in zip(rows, more, strict=True):
+        assert len(m["share_seen_by"]) == 6 and abs(sum(m["share_seen_by"]) - 1) < 1e-9
+        assert m["share_seen_by"][0] <= r["share_seen_by"][0] + 1e-12
 
 
 def test_floor_height_keeps_the_vertices_over_the_floor_and_measures_their_rise():
