@@ -108,15 +108,15 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.device import pick_device
     from neus_l0.mesh.cleanup import clean_up
     from neus_l0.mesh.extract import export_mesh, vertex_colors
-    from neus_l0.mesh.from_run import mask_report, mesh_from_run
+    from neus_l0.mesh.from_run import MaskSteps, mask_report, mesh_from_run
 
     out, method, options = _check(args)
     device = pick_device(args.device)
     use_threads(args.threads, device)
     t0 = time.monotonic()
     made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
-                         progress=not args.quiet, close_underside=args.close_underside,
-                         drop_outside_masks=args.drop_outside_masks)
+                         progress=not args.quiet,
+                         masks=MaskSteps(args.close_underside, args.drop_outside_masks))
     mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "

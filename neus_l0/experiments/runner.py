@@ -133,6 +133,13 @@ class RunSpec:
     def run_dir(self) -> Path:
         return Path(self.out_dir) / "runs" / self.name
 
+    @property
+    def mask_steps(self):
+        """The mesh steps that read the masks (`neus_l0.mesh.from_run.MaskSteps`)."""
+        from neus_l0.mesh.from_run import MaskSteps
+
+        return MaskSteps(self.close_underside, self.drop_outside_masks)
+
     def run_overrides(self) -> list[str]:
         """The bench's settings, the user's overrides, then the run's own (which win).
 
@@ -325,8 +332,7 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         t0 = time.monotonic()
         try:
             mesh = mesh_from_run(spec.run_dir, spec.resolution, spec.device, ckpt,
-                                 close_underside=spec.close_underside,
-                                 drop_outside_masks=spec.drop_outside_masks).mesh
+                                 masks=spec.mask_steps).mesh
         except NeusL0Error as exc:
             points.append(curve_point(elapsed[iteration], iteration, None, None, str(exc)))
             continue
@@ -465,9 +471,7 @@ def _mesh_stage(spec: RunSpec, timings: dict, report):
 
     t0 = time.monotonic()
     report(f"mesh: marching cubes {spec.resolution}^3")
-    made = mesh_from_run(spec.run_dir, spec.resolution, spec.device,
-                         close_underside=spec.close_underside,
-                         drop_outside_masks=spec.drop_outside_masks)
+    made = mesh_from_run(spec.run_dir, spec.resolution, spec.device, masks=spec.mask_steps)
     timings["extract_s"] = time.monotonic() - t0
     mesh_path = export_mesh(made.mesh, spec.run_dir / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0

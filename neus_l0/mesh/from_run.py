@@ -25,6 +25,27 @@ from neus_l0.mesh.underside import cut_below, underside_line, underside_plane
 from neus_l0.run.checkpoints import load_trained_model
 
 
+@dataclasses.dataclass(frozen=True)
+class MaskSteps:
+    """The mesh steps that read the run's training masks (both off by default).
+
+    Attributes:
+        close_underside: close the underside no training view sees flat, at the plane
+            `neus_l0.mesh.underside.underside_plane` finds on a first mesh (then extracted
+            again, cut there).
+        drop_outside_masks: drop the connected pieces that a training view sees outside its
+            mask (`neus_l0.mesh.mask_outliers`).
+    """
+
+    close_underside: bool = False
+    drop_outside_masks: bool = False
+
+    @property
+    def any(self) -> bool:
+        """Whether a step needs the run's scene and masks."""
+        return self.close_underside or self.drop_outside_masks
+
+
 @dataclasses.dataclass
 class RunMesh:
     """A run's mesh and what it was made from.
@@ -50,7 +71,7 @@ class RunMesh:
 def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.device = "cpu",
                   checkpoint: str | Path | None = None, clean: bool = True,
                   method: str = "auto", progress: bool = False,
-                  close_underside: bool = False, drop_outside_masks: bool = False) -> RunMesh:
+                  masks: MaskSteps = MaskSteps()) -> RunMesh:
     """Marching cubes of a run's SDF at `resolution`^3, restricted to the run's visual hull
     (``RUN/hull.pt``, when it has one).
 
@@ -62,11 +83,8 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         clean: drop floating specks (see `extract_mesh`).
         method: ``auto``, ``dense`` or ``sparse`` (see `extract_mesh`).
         progress: a tqdm bar on stderr while the SDF is evaluated (`progress_bars`).
-        close_underside: close the underside no training view sees flat, at the plane
-            `neus_l0.mesh.underside.underside_plane` finds on a first mesh (then extracted
-            again, cut there); needs the run's scene with masks.
-        drop_outside_masks: drop the connected pieces that a training view sees outside its
-            mask (`neus_l0.mesh.mask_outliers`); needs the run's scene with masks.
+        masks: the steps that read the run's training masks (`MaskSteps`); they need the
+            run's scene with masks.
 
     Raises:
         NeusL0Error: no usable checkpoint, or no surface in the field; with
@@ -76,20 +94,20 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
     model, cfg, info = load_trained_model(run_dir, device, checkpoint)
     scale_mat = np.asarray(info["scale_mat"], dtype=np.float64)
     hull = load_run_hull(run_dir, device)
-    views = training_views(run_dir) if close_underside or drop_outside_masks else None
+    views = training_views(run_dir) if masks.any else None
     with progress_bars(progress):
         mesh = extract_mesh(model, scale_mat, resolution=resolution, clean=clean,
                             device=device, method=method, hull=hull)
-        plane = underside_plane(mesh, *views) if close_underside else None
+        plane = underside_plane(mesh, *views) if masks.close_underside else None
         if plane is not None:
             cut = cut_below(model, *plane_to_normalised(plane, scale_mat))
             mesh = extract_mesh(cut, scale_mat, resolution=resolution, clean=clean,
                                 device=device, method=method, hull=hull)
     meta = dict(mesh.metadata)
-    if close_underside:
+    if masks.close_underside:
         meta["underside_plane"] = (None if plane is None else
                                    {"up": plane[0].tolist(), "height": plane[1]})
-    if drop_outside_masks:
+    if masks.drop_outside_masks:
         mesh, meta["dropped_outside_masks"] = mask_outliers(mesh, *views)
     mesh.metadata.update(meta)
     return RunMesh(mesh, model, cfg, info)
