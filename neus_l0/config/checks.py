@@ -226,9 +226,11 @@ def _check_sampler(obj: SamplerConfig, bad: Callable[[str, str], ConfigError]) -
 def _check_photo(obj: PhotoConfig, bad: Callable[[str, str], ConfigError]) -> None:
     if obj.patch % 2 == 0:
         raise bad("patch", f"{obj.patch}: must be odd (the patch is centred on the ray's pixel)")
-    if obj.best > obj.sources + obj.normal_sources:
-        raise bad("best", f"{obj.best}: at most train.photo.sources + normal_sources "
-                  f"({obj.sources} + {obj.normal_sources})")
+    if obj.best > obj.sources:
+        raise bad("best", f"{obj.best}: at most train.photo.sources ({obj.sources})")
+    if obj.normal_sources > 0 and obj.occlusion_samples <= 0:
+        raise bad("normal_sources", f"{obj.normal_sources}: the normal's sources stand in "
+                  "when the SDF blocks the nearest; it needs train.photo.occlusion_samples > 0")
 
 
 def _check_train(obj: TrainConfig, bad: Callable[[str, str], ConfigError]) -> None:

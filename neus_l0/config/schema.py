@@ -388,8 +388,9 @@ class PhotoConfig:
     """How many of a ray's sources count: those that agree best (the others may not see
     the point)."""
     normal_sources: int = 0
-    """Per ray, this many more sources: the views that look most squarely at its surface
-    point (by its normal), besides the `sources` nearest (0: none). The nearest views of a
+    """Per ray, this many stand-in sources: the views that look most squarely at its
+    surface point (by its normal), which count only when the SDF blocks every one of its
+    `sources` nearest (`occlusion_samples` > 0 decides; 0: none). The nearest views of a
     camera that sees a cavity's floor at a slant mostly see the wall instead."""
     patch: int = 3
     """Side of the square patch in samples (odd; 3 measured best at 400x300 on pits-deep

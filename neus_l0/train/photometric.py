@@ -244,6 +244,27 @@ def best_cost(cost: Tensor, valid: Tensor, k: int) -> tuple[Tensor, Tensor]:
     return (low * keep).sum(-1) / n.clamp_min(1.0), n > 0
 
 
+def normal_fallback(valid: Tensor, blocked: Tensor, m: int) -> Tensor:
+    """Which sources count when the normal's sources stand in for the nearest: a ray keeps
+    its first `m` (nearest) sources as they are while the SDF leaves any of them a clear
+    view; a ray whose valid nearest sources are all blocked counts its other (normal-chosen)
+    sources instead, those that are valid and not blocked.
+
+    Args:
+        valid: (B, M + K) bool sources that can score the patch; blocked: (B, M + K) bool
+            sources the SDF puts solid in front of (`occluded`); m: the nearest sources' count.
+
+    Returns:
+        (B, M + K) bool.
+    """
+    near_clear = (valid[:, :m] & ~blocked[:, :m]).any(-1, keepdim=True)  # (B, 1)
+    keep_near = torch.zeros_like(valid)
+    keep_near[:, :m] = valid[:, :m]
+    use_normal = torch.zeros_like(valid)
+    use_normal[:, m:] = valid[:, m:] & ~blocked[:, m:]
+    return torch.where(near_clear, keep_near, use_normal)
+
+
 def occluded(sdf: Callable[[Tensor], Tensor], points: Tensor, centres: Tensor, samples: int,
              start: float) -> Tensor:
     """Whether the SDF puts solid between surface points and cameras: `samples` points
@@ -325,7 +346,9 @@ def photometric_term(ctx: PhotoContext, sdf: Callable[[Tensor], Tensor], rays: P
             normalised frame, do not count: their depth mixes two surfaces);
             `occlusion_samples` (> 0: a source whose view of the point the SDF blocks,
             `occluded`, does not count: a cavity's floor is seen by few views, and a source
-            looking at the wall instead would pull the floor to a wrong depth);
+            looking at the wall instead would pull the floor to a wrong depth; with the
+            context's `normal_sources`, the test only decides when the normal's sources
+            stand in for the nearest, `normal_fallback`);
             `planar_sdf` (> 0: a ray whose patch's plane points lie farther than this from
             the zero level does not count: the patch straddles a rim, where the plane the
             homography assumes is not there).
@@ -338,17 +361,23 @@ def photometric_term(ctx: PhotoContext, sdf: Callable[[Tensor], Tensor], rays: P
     ref, ref_in = sample_gray(ctx.gray, ctx.height, ctx.width, rays.view[:, None], pix)
     pts = plane_points(rays.origins, ctx.rays[rays.view], pix, x, n)  # (B, P, 3)
     src_views = ctx.sources[rays.view]  # (B, M)
-    if ctx.normal_sources > 0:
+    m = src_views.shape[1]
+    stand_in = ctx.normal_sources > 0 and cfg.occlusion_samples > 0
+    if stand_in:
         more = normal_views(ctx.centres, x.detach(), n, rays.view, src_views,
                             ctx.normal_sources)
         src_views = torch.cat([src_views, more], dim=1)  # (B, M + K)
     uv, z = project(pts, ctx.proj[src_views], ctx.centres[src_views])
     vals, inside = sample_gray(ctx.gray, ctx.height, ctx.width, src_views[..., None], uv)
     facing = ((ctx.centres[src_views] - x.detach()[:, None, :]) * n[:, None, :]).sum(-1) > 0
-    valid = facing & (z > 0).all(-1) & inside.all(-1)  # (B, M)
+    valid = facing & (z > 0).all(-1) & inside.all(-1)  # (B, M [+ K])
     if cfg.occlusion_samples > 0:
-        valid = valid & ~occluded(sdf, x.detach(), ctx.centres[src_views],
-                                  cfg.occlusion_samples, OCCLUSION_START)
+        blocked = occluded(sdf, x.detach(), ctx.centres[src_views], cfg.occlusion_samples,
+                           OCCLUSION_START)
+        if stand_in:
+            valid = normal_fallback(valid, blocked, m)
+        else:
+            valid = valid & ~blocked
     if cfg.planar_sdf > 0:
         with torch.no_grad():
             off = sdf(pts.detach().reshape(-1, 3)).reshape(pts.shape[:2]).abs()

@@ -25,6 +25,7 @@ from neus_l0.train.photometric import (
     best_cost,
     ncc,
     nearest_views,
+    normal_fallback,
     normal_views,
     occluded,
     patch_offsets,
@@ -280,7 +281,8 @@ def plane_depth(scene: Scene, views: torch.Tensor, xy: torch.Tensor, z: float) -
     return ((z - r.origins[:, 2]) / r.dirs[:, 2])[:, None]
 
 
-def term_on_plane(scene: Scene, ctx: PhotoContext, h: torch.Tensor, view: int = 0):
+def term_on_plane(scene: Scene, ctx: PhotoContext, h: torch.Tensor,
+                  cfg: PhotoConfig | None = None, view: int = 0):
     """The term on a grid of view `view`'s pixels, its rendered surface at z = h + 0.003
     (the Newton step then lands on z = h) and normal +z."""
     H, W = scene.height, scene.width
@@ -291,7 +293,7 @@ def term_on_plane(scene: Scene, ctx: PhotoContext, h: torch.Tensor, view: int = 
     depth = plane_depth(scene, views, xy, h.detach().item() + 0.003)
     up = torch.tensor([[0.0, 0.0, 1.0]]).expand(len(xy), 3)
     return photometric_term(ctx, plane_sdf(h), pixel_rays(scene, views, xy, depth, up),
-                            PhotoConfig())
+                            cfg or PhotoConfig())
 
 
 def test_the_term_finds_the_textured_planes_depth():
@@ -313,31 +315,66 @@ def test_the_term_finds_the_textured_planes_depth():
         assert costs == sorted(costs) and costs[2] > 3 * costs[0]
 
 
-def test_normal_sources_find_a_view_that_the_nearest_do_not():
-    """A cavity floor's nearest sources see a wall: here view 0's nearest source shows noise.
-    With it alone the plane costs a lot; two sources more, chosen by the normal, find views
-    of the plane, and the cost at the plane drops below a tenth (best 1; a few rays' patches
-    leave both of the others' images and still read the noise)."""
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 5), st.integers(1, 4))
+def test_normal_fallback_against_a_plain_loop(seed, m, k):
+    g = torch.Generator().manual_seed(seed)
+    valid = torch.rand(12, m + k, generator=g) < 0.6
+    blocked = torch.rand(12, m + k, generator=g) < 0.5
+    got = normal_fallback(valid, blocked, m)
+    for b in range(12):
+        v, bl = valid[b].tolist(), blocked[b].tolist()
+        if any(v[j] and not bl[j] for j in range(m)):  # a nearest source sees the point
+            want = v[:m] + [False] * k
+        else:
+            want = [False] * m + [v[j] and not bl[j] for j in range(m, m + k)]
+        assert got[b].tolist() == want
+
+
+def noisy_nearest_scene() -> Scene:
+    """`plane_scene` with view 0's nearest source showing noise (it sees a 'wall')."""
     scene = plane_scene()
     near = int(nearest_views(scene.centres, 1)[0, 0])
     noise = torch.rand(scene.height, scene.width, generator=torch.Generator().manual_seed(0))
     images = scene.images.clone()
     images[near] = noise[..., None].expand(-1, -1, 3)
-    scene = Scene(root=None, images=images, masks=scene.masks, has_masks=False,
-                  intrinsics=scene.intrinsics, c2w=scene.c2w, scale_mat=np.eye(4),
-                  image_names=scene.image_names)
+    return Scene(root=None, images=images, masks=scene.masks, has_masks=False,
+                 intrinsics=scene.intrinsics, c2w=scene.c2w, scale_mat=np.eye(4),
+                 image_names=scene.image_names)
+
+
+def test_normal_sources_stand_in_when_the_sdf_blocks_the_nearest(monkeypatch):
+    """A cavity floor's nearest sources see a wall: here view 0's one nearest source shows
+    noise. While the SDF leaves it a clear view, the normal's sources change next to nothing; when
+    the SDF blocks it, two sources chosen by the normal stand in, find the plane, and the
+    cost at the plane drops below a tenth (best 1; a few rays' patches leave both of the
+    others' images); the term still pulls a lifted surface down."""
+    import neus_l0.train.photometric as photometric
+
+    scene = noisy_nearest_scene()
     alone = PhotoContext.from_scene(scene, n_sources=1, patch=5, stride=1, best=1)
     more = PhotoContext.from_scene(scene, n_sources=1, patch=5, stride=1, best=1,
                                    normal_sources=2)
     assert more.normal_sources == 2 and alone.normal_sources == 0
-    cost_alone, counted = term_on_plane(scene, alone, torch.tensor(0.0))
-    cost_more, counted_more = term_on_plane(scene, more, torch.tensor(0.0))
-    assert counted_more.item() >= counted.item() > 20  # a source more can only add rays
-    assert cost_alone.item() > 0.3 and cost_more.item() < 0.1 * cost_alone.item()
-    # and the normal's source still pulls a lifted surface back down
+    cfg = PhotoConfig(occlusion_samples=4)
+    cost_alone, counted = term_on_plane(scene, alone, torch.tensor(0.0), cfg)
+    # the plane blocks nothing: only the few rays whose patch leaves the nearest's image
+    # (no nearest source can score them) take the normal's sources
+    same, _ = term_on_plane(scene, more, torch.tensor(0.0), cfg)
+    assert same.item() == pytest.approx(cost_alone.item(), rel=0.05) and cost_alone.item() > 0.3
+
+    def nearest_blocked(sdf, points, centres, samples, start):
+        out = torch.zeros(centres.shape[:2], dtype=torch.bool)
+        out[:, 0] = True
+        return out
+
+    monkeypatch.setattr(photometric, "occluded", nearest_blocked)
+    cost_more, counted_more = term_on_plane(scene, more, torch.tensor(0.0), cfg)
+    assert counted_more.item() > 20 and cost_more.item() < 0.1 * cost_alone.item()
+    assert term_on_plane(scene, alone, torch.tensor(0.0), cfg)[1].item() == 0  # none left
     for step in (0.05, 0.1):  # 1 and 2 pixels of parallax
         h = torch.tensor(step, requires_grad=True)
-        cost, _ = term_on_plane(scene, more, h)
+        cost, _ = term_on_plane(scene, more, h, cfg)
         cost.backward()
         assert cost.item() > cost_more.item() and h.grad.item() > 0
 
@@ -472,6 +509,7 @@ def test_the_step_with_the_term(small, sphere_scene, tmp_path):
     ("train.photo.patch=4", "odd"),
     ("train.photo.best=9", "at most"),
     ("train.photo.normal_sources=-1", "normal_sources"),
+    ("train.photo.normal_sources=4", "occlusion_samples"),
     ("train.photo.weight=-1", "weight"),
 ])
 def test_bad_settings_are_named(override, match):
