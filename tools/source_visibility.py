@@ -124,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--features", default="", help="comma-separated names (default: all)")
     ap.add_argument("--sources", type=int, default=4, help="nearest views per view")
     ap.add_argument("--normal-sources", type=int, default=0,
-                    help="more sources per pixel, by the true normal (as train.photo.normal_sources picks its stand-ins)")
+                    help="more sources per pixel, by the true normal (as "
+                         "train.photo.normal_sources picks its stand-ins)")
     ap.add_argument("--tol", type=float, default=1.5, help="depth tolerance, world units")
     ap.add_argument("--out", type=Path, help="also write the table as JSON")
     a = ap.parse_args(argv)
