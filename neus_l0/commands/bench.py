@@ -66,6 +66,8 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                         "(as `neus-l0 mesh --close-underside`)")
     p.add_argument("--drop-outside-masks", action="store_true",
                    help="drop each mesh's pieces a training view sees outside its mask")
+    p.add_argument("--inset", type=float, default=0.0, metavar="K",
+                   help="mesh each run at the SDF's level -K/s (as `neus-l0 mesh --inset`)")
     p.add_argument("--eval-density", type=float, default=None,
                    help="Chamfer sampling density in world units (default: 0.5 on a CPU, the "
                         "synthetic scenes' point spacing; 0.2, the DTU protocol, on CUDA)")
@@ -133,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         eval_density=args.eval_density, sample_rays=args.sample_rays,
         psnr_pixels=args.psnr_pixels, backend=args.backend, timeout=args.timeout,
         snapshots=args.snapshots, planned=args.plan, close_underside=args.close_underside,
-        drop_outside_masks=args.drop_outside_masks)
+        drop_outside_masks=args.drop_outside_masks, inset=args.inset)
     check_spec(spec)
     check_output_dir(args.out, "--out", ("sweep.json",), SWEEP_NAMES, "a bench folder")
     chosen = [f"--{k.replace('_', '-')} {getattr(spec, k)}" for k in device_defaults(spec.device)

@@ -29,6 +29,10 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--drop-outside-masks", action="store_true",
                    help="drop connected pieces that a training view sees outside its mask "
                         "(over half their vertices off the mask dilated by 2 px)")
+    p.add_argument("--inset", type=float, default=0.0, metavar="K",
+                   help="extract the SDF's level -K/s instead of 0 (s: NeuS's learned "
+                        "sharpness; a trained zero level sits outside the true surface by "
+                        "about half of 1/s; default 0)")
     p.add_argument("--colors", action="store_true",
                    help="vertex colours from the colour network (view = -normal)")
     p.add_argument("--texture", action="store_true",
@@ -74,6 +78,8 @@ def _check(args: argparse.Namespace):
 
     if args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
+    if not 0 <= args.inset < float("inf"):
+        raise NeusL0Error(f"--inset {args.inset}: must be a finite number >= 0")
     out = check_not_input(args.out if args.out else Path(args.run) / "mesh.ply", "--out",
                           [args.run, args.checkpoint])
     check_output_file(out, "--out")
@@ -108,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     from neus_l0.device import pick_device
     from neus_l0.mesh.cleanup import clean_up
     from neus_l0.mesh.extract import export_mesh, vertex_colors
-    from neus_l0.mesh.from_run import MaskSteps, mask_report, mesh_from_run
+    from neus_l0.mesh.from_run import MeshSteps, mesh_from_run, steps_report
 
     out, method, options = _check(args)
     device = pick_device(args.device)
@@ -116,13 +122,14 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
                          progress=not args.quiet,
-                         masks=MaskSteps(args.close_underside, args.drop_outside_masks))
+                         steps=MeshSteps(args.close_underside, args.drop_outside_masks,
+                                         args.inset))
     mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "
           f"evaluations ({st['sdf_evals'] / st['dense_evals']:.1%} of the dense grid), "
           f"{st['seconds']:.1f} s")
-    for line in mask_report(mesh.metadata):
+    for line in steps_report(mesh.metadata):
         print(line)
     if options.any():
         n_before = len(mesh.faces)

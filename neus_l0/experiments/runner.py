@@ -104,6 +104,8 @@ class RunSpec:
             --close-underside`; snapshots too).
         drop_outside_masks: drop each mesh's pieces a view sees outside its mask (`neus-l0
             mesh --drop-outside-masks`; snapshots too).
+        inset: extract each mesh at the level -inset/s (`neus-l0 mesh --inset`; snapshots
+            too).
     """
 
     name: str
@@ -128,17 +130,18 @@ class RunSpec:
     planned: bool = False
     close_underside: bool = False
     drop_outside_masks: bool = False
+    inset: float = 0.0
 
     @property
     def run_dir(self) -> Path:
         return Path(self.out_dir) / "runs" / self.name
 
     @property
-    def mask_steps(self):
-        """The mesh steps that read the masks (`neus_l0.mesh.from_run.MaskSteps`)."""
-        from neus_l0.mesh.from_run import MaskSteps
+    def mesh_steps(self):
+        """The optional mesh steps (`neus_l0.mesh.from_run.MeshSteps`)."""
+        from neus_l0.mesh.from_run import MeshSteps
 
-        return MaskSteps(self.close_underside, self.drop_outside_masks)
+        return MeshSteps(self.close_underside, self.drop_outside_masks, self.inset)
 
     def run_overrides(self) -> list[str]:
         """The bench's settings, the user's overrides, then the run's own (which win).
@@ -332,7 +335,7 @@ def score_snapshots(spec: RunSpec, snapshots: list[tuple[float, int, Path]], fin
         t0 = time.monotonic()
         try:
             mesh = mesh_from_run(spec.run_dir, spec.resolution, spec.device, ckpt,
-                                 masks=spec.mask_steps).mesh
+                                 steps=spec.mesh_steps).mesh
         except NeusL0Error as exc:
             points.append(curve_point(elapsed[iteration], iteration, None, None, str(exc)))
             continue
@@ -471,7 +474,7 @@ def _mesh_stage(spec: RunSpec, timings: dict, report):
 
     t0 = time.monotonic()
     report(f"mesh: marching cubes {spec.resolution}^3")
-    made = mesh_from_run(spec.run_dir, spec.resolution, spec.device, masks=spec.mask_steps)
+    made = mesh_from_run(spec.run_dir, spec.resolution, spec.device, steps=spec.mesh_steps)
     timings["extract_s"] = time.monotonic() - t0
     mesh_path = export_mesh(made.mesh, spec.run_dir / "mesh.ply")
     timings["mesh_s"] = time.monotonic() - t0

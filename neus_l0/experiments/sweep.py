@@ -53,7 +53,7 @@ SWEEP_NAMES = ("sweep.json", "runs", "scenes", "plots", "results.csv", "results.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
                "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels",
                "snapshots", "planned", "close_underside",
-               "drop_outside_masks")
+               "drop_outside_masks", "inset")
 
 
 @dataclasses.dataclass
@@ -230,6 +230,7 @@ class SweepSpec:
         close_underside: mesh each run with its unseen underside closed flat
             (`RunSpec.close_underside`).
         drop_outside_masks: drop each mesh's pieces a view sees outside its mask.
+        inset: mesh each run at the level -inset/s (`RunSpec.inset`).
     """
 
     out_dir: str | Path
@@ -255,6 +256,7 @@ class SweepSpec:
     planned: bool = False
     close_underside: bool = False
     drop_outside_masks: bool = False
+    inset: float = 0.0
 
     def __post_init__(self):
         for key, value in device_defaults(self.device).items():
@@ -275,6 +277,7 @@ class SweepSpec:
             **({"planned": True} if self.planned else {}),
             **({"close_underside": True} if self.close_underside else {}),
             **({"drop_outside_masks": True} if self.drop_outside_masks else {}),
+            **({"inset": self.inset} if self.inset else {}),
         }
 
     def run_spec(self, scene: str, folder: Path, sampler: str, budget: float, seed: int,
@@ -290,7 +293,7 @@ class SweepSpec:
                        psnr_pixels=self.psnr_pixels, planned=self.planned,
                        snapshots=snapshot_marks(float(budget), self.snapshots),
                        close_underside=self.close_underside,
-                       drop_outside_masks=self.drop_outside_masks)
+                       drop_outside_masks=self.drop_outside_masks, inset=self.inset)
 
 
 def plan_runs(spec: SweepSpec, resolved: Sequence[tuple[str, Path]],
@@ -437,6 +440,8 @@ def check_spec(spec: SweepSpec) -> None:
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:  # before any scene is built
         raise NeusL0Error(f"--scenes: two scenes share a name ({', '.join(twice)})")
+    if not 0 <= spec.inset < float("inf"):
+        raise NeusL0Error(f"--inset {spec.inset}: must be a finite number >= 0")
     bad = [s for s in spec.samplers if s not in SAMPLERS]
     if bad:
         raise NeusL0Error(f"--samplers: unknown {', '.join(bad)} (choose from "

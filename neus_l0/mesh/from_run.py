@@ -20,29 +20,32 @@ from neus_l0.data.cameras import read_masks, read_world_mats
 from neus_l0.errors import NeusL0Error
 from neus_l0.fields.model import NeuSModel
 from neus_l0.mesh.extract import extract_mesh, progress_bars
+from neus_l0.mesh.inset import inset
 from neus_l0.mesh.mask_outliers import mask_outliers
 from neus_l0.mesh.underside import cut_below, underside_line, underside_plane
 from neus_l0.run.checkpoints import load_trained_model
 
 
 @dataclasses.dataclass(frozen=True)
-class MaskSteps:
-    """The mesh steps that read the run's training masks (both off by default).
+class MeshSteps:
+    """The optional steps between the trained SDF and the mesh (all off by default).
 
     Attributes:
         close_underside: close the underside no training view sees flat, at the plane
             `neus_l0.mesh.underside.underside_plane` finds on a first mesh (then extracted
-            again, cut there).
+            again, cut there); reads the masks.
         drop_outside_masks: drop the connected pieces that a training view sees outside its
-            mask (`neus_l0.mesh.mask_outliers`).
+            mask (`neus_l0.mesh.mask_outliers`); reads the masks.
+        inset: K >= 0: extract the level ``-K / s`` instead of 0 (`neus_l0.mesh.inset`).
     """
 
     close_underside: bool = False
     drop_outside_masks: bool = False
+    inset: float = 0.0
 
     @property
-    def any(self) -> bool:
-        """Whether a step needs the run's scene and masks."""
+    def needs_masks(self) -> bool:
+        """Whether a step reads the run's scene and masks."""
         return self.close_underside or self.drop_outside_masks
 
 
@@ -71,7 +74,7 @@ class RunMesh:
 def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.device = "cpu",
                   checkpoint: str | Path | None = None, clean: bool = True,
                   method: str = "auto", progress: bool = False,
-                  masks: MaskSteps = MaskSteps()) -> RunMesh:
+                  steps: MeshSteps = MeshSteps()) -> RunMesh:
     """Marching cubes of a run's SDF at `resolution`^3, restricted to the run's visual hull
     (``RUN/hull.pt``, when it has one).
 
@@ -83,8 +86,8 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         clean: drop floating specks (see `extract_mesh`).
         method: ``auto``, ``dense`` or ``sparse`` (see `extract_mesh`).
         progress: a tqdm bar on stderr while the SDF is evaluated (`progress_bars`).
-        masks: the steps that read the run's training masks (`MaskSteps`); they need the
-            run's scene with masks.
+        steps: the optional steps (`MeshSteps`); those that read masks need the run's
+            scene with masks.
 
     Raises:
         NeusL0Error: no usable checkpoint, or no surface in the field; with
@@ -94,20 +97,24 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
     model, cfg, info = load_trained_model(run_dir, device, checkpoint)
     scale_mat = np.asarray(info["scale_mat"], dtype=np.float64)
     hull = load_run_hull(run_dir, device)
-    views = training_views(run_dir) if masks.any else None
+    views = training_views(run_dir) if steps.needs_masks else None
+    field, delta = inset(model, steps.inset)
     with progress_bars(progress):
-        mesh = extract_mesh(model, scale_mat, resolution=resolution, clean=clean,
+        mesh = extract_mesh(field, scale_mat, resolution=resolution, clean=clean,
                             device=device, method=method, hull=hull)
-        plane = underside_plane(mesh, *views) if masks.close_underside else None
+        plane = underside_plane(mesh, *views) if steps.close_underside else None
         if plane is not None:
-            cut = cut_below(model, *plane_to_normalised(plane, scale_mat))
+            cut = cut_below(field, *plane_to_normalised(plane, scale_mat))
             mesh = extract_mesh(cut, scale_mat, resolution=resolution, clean=clean,
                                 device=device, method=method, hull=hull)
     meta = dict(mesh.metadata)
-    if masks.close_underside:
+    if steps.inset:
+        meta["inset"] = {"k": steps.inset, "level": -delta,
+                         "world": delta * float(np.cbrt(abs(np.linalg.det(scale_mat[:3, :3]))))}
+    if steps.close_underside:
         meta["underside_plane"] = (None if plane is None else
                                    {"up": plane[0].tolist(), "height": plane[1]})
-    if masks.drop_outside_masks:
+    if steps.drop_outside_masks:
         mesh, meta["dropped_outside_masks"] = mask_outliers(mesh, *views)
     mesh.metadata.update(meta)
     return RunMesh(mesh, model, cfg, info)
@@ -150,10 +157,15 @@ def plane_to_normalised(plane: tuple[np.ndarray, float], scale_mat: np.ndarray
     return up, float((height - up @ t) / s)
 
 
-def mask_report(metadata: dict) -> list[str]:
-    """What the mask-aware steps did (`mesh_from_run`'s ``metadata``), a line each: the
-    underside's plane (`underside_line`) and the pieces dropped outside the masks."""
+def steps_report(metadata: dict) -> list[str]:
+    """What the optional steps did (`mesh_from_run`'s ``metadata``), a line each: the level
+    extracted, the underside's plane (`underside_line`) and the pieces dropped outside the
+    masks."""
     lines = []
+    if "inset" in metadata:
+        ins = metadata["inset"]
+        lines.append(f"inset: level {ins['level']:.5f} (-{ins['k']:g}/s), "
+                     f"{ins['world']:.3f} world units inside the zero level")
     if "underside_plane" in metadata:
         lines.append(underside_line(metadata["underside_plane"]))
     if "dropped_outside_masks" in metadata:

@@ -177,12 +177,12 @@ def _mesh_score_draw(opts: DemoOptions, paths: dict[str, Path], device: str,
     """Stages 3 and 4: the mesh, its Chamfer report and the picture (timed into
     `timings`). Returns the mesh and the report."""
     from neus_l0.mesh.extract import export_mesh
-    from neus_l0.mesh.from_run import MaskSteps, mesh_from_run
+    from neus_l0.mesh.from_run import MeshSteps, mesh_from_run
 
     t0 = time.monotonic()
     print(f"[3/4] extracting the mesh at {opts.resolution}^3 ...", flush=True)
     mesh = mesh_from_run(paths["run"], opts.resolution, device, progress=not opts.quiet,
-                         masks=MaskSteps(opts.close_underside, opts.drop_outside_masks)).mesh
+                         steps=MeshSteps(opts.close_underside, opts.drop_outside_masks)).mesh
     mesh_path = export_mesh(mesh, paths["mesh"])
     timings["mesh_s"] = time.monotonic() - t0
 

@@ -28,7 +28,7 @@ from neus_l0.evaluation.sample_distance import (
 )
 from neus_l0.experiments.results import COLUMNS, DETERMINISTIC, NUMERIC
 from neus_l0.experiments.sample_hook import SampleDistanceHook
-from neus_l0.experiments.sweep import SweepSpec, default_conf, run_sweep
+from neus_l0.experiments.sweep import SweepSpec, check_spec, default_conf, run_sweep
 from neus_l0.formats.neus import load_scene
 
 #: A tiny network and schedule; `train.iters` ends every run long before its budget, so the
@@ -136,21 +136,26 @@ def test_other_settings_on_the_same_folder_are_refused(sweep):
                              holdout=2), progress=False)
 
 
-def test_the_mask_aware_mesh_steps_are_settings_of_the_sweep_and_of_each_run(sweep, tmp_path):
-    """`bench --close-underside` and `--drop-outside-masks` reach every run's spec, are
-    recorded in sweep.json, and a folder meshed one way refuses the other."""
+def test_the_mesh_steps_are_settings_of_the_sweep_and_of_each_run(sweep, tmp_path):
+    """`bench --close-underside`, `--drop-outside-masks` and `--inset` reach every run's
+    spec, are recorded in sweep.json, and a folder meshed one way refuses the other."""
     out, _ = sweep
     spec = sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET], [0], close_underside=True,
-                      drop_outside_masks=True)
+                      drop_outside_masks=True, inset=0.5)
     assert spec.settings({})["close_underside"] is True
     assert spec.settings({})["drop_outside_masks"] is True
-    assert "close_underside" not in sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET],
-                                               [0]).settings({})
+    assert spec.settings({})["inset"] == 0.5
+    plain = sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET], [0]).settings({})
+    assert "close_underside" not in plain and "inset" not in plain
     run = spec.run_spec("demo", tmp_path, "l0", BUDGET, 0, {})
     assert run.close_underside is True and run.drop_outside_masks is True
-    with pytest.raises(NeusL0Error, match="other settings"):
-        run_sweep(sweep_spec(out, [str(out / "scenes" / "demo")], ["hvs"], [BUDGET], [0],
-                             close_underside=True), progress=False)
+    assert run.mesh_steps.inset == 0.5 and run.mesh_steps.needs_masks
+    for steps in ({"close_underside": True}, {"inset": 0.5}):
+        with pytest.raises(NeusL0Error, match="other settings"):
+            run_sweep(sweep_spec(out, [str(out / "scenes" / "demo")], ["hvs"], [BUDGET], [0],
+                                 **steps), progress=False)
+    with pytest.raises(NeusL0Error, match="--inset"):
+        check_spec(sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET], [0], inset=-1.0))
 
 
 def test_plots_are_written(sweep):
