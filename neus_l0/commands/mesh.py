@@ -23,16 +23,13 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="drop floating specks: pieces whose bounding-box diagonal is under 5%% "
                         "of the main piece's (default on; thin parts cut off by the grid stay)")
     p.add_argument("--close-underside", action="store_true",
-                   help="close the underside no training view sees flat, under the lowest "
-                        "point they see in their masks (not the visual hull's cone; needs "
-                        "the run's scene with masks; extracts twice)")
+                   help="close the side no training view sees flat, under the lowest point "
+                        "they see in their masks (needs the scene's masks; extracts twice)")
     p.add_argument("--drop-outside-masks", action="store_true",
                    help="drop connected pieces that a training view sees outside its mask "
                         "(over half their vertices off the mask dilated by 2 px)")
-    p.add_argument("--inset", type=float, default=0.0, metavar="K",
-                   help="extract the SDF's level -K/s instead of 0 (s: NeuS's learned "
-                        "sharpness; a trained zero level sits outside the true surface by "
-                        "about half of 1/s; default 0)")
+    p.add_argument("--inset", type=float, default=0.0, metavar="K", help="extract the level "
+                   "-K/s, s NeuS's learned sharpness (the zero level sits ~0.5/s outside)")
     p.add_argument("--colors", action="store_true",
                    help="vertex colours from the colour network (view = -normal)")
     p.add_argument("--texture", action="store_true",
@@ -49,8 +46,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="remove components whose bounding-box diagonal is below FRAC of the "
                         "mesh's (e.g. 0.1; default 0: off; MeshLab's, after --clean)")
     p.add_argument("--close-holes", type=int, default=0, metavar="MAXEDGES",
-                   help="close holes with at most MAXEDGES boundary edges (e.g. 100; "
-                        "default 0: off)")
+                   help="close holes with at most MAXEDGES boundary edges (e.g. 100; 0: off)")
     p.add_argument("--method", default="auto", choices=["auto", "dense", "sparse"],
                    help="dense grid, or sparse (the SDF evaluated only in blocks near the "
                         "surface); auto: sparse above 128 samples per axis (default)")
@@ -58,9 +54,8 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
                    help="a specific checkpoint (default the newest that loads)")
     p.add_argument("--device", default=None, choices=["cpu", "cuda"])
     add_threads_flag(p)
-    p.add_argument("--quiet", action="store_true",
-                   help="no progress bar (by default one on stderr while the SDF is evaluated, "
-                        "when that takes over a second)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (by default one on "
+                   "stderr while the SDF is evaluated, when that takes over a second)")
     return p
 
 
@@ -120,17 +115,15 @@ def run(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     use_threads(args.threads, device)
     t0 = time.monotonic()
+    steps = MeshSteps(args.close_underside, args.drop_outside_masks, args.inset)
     made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
-                         progress=not args.quiet,
-                         steps=MeshSteps(args.close_underside, args.drop_outside_masks,
-                                         args.inset))
+                         progress=not args.quiet, steps=steps)
     mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat
     st = mesh.metadata["extraction"]
     print(f"{st['method']} extraction at {st['resolution']}^3: {st['sdf_evals']:,} SDF "
           f"evaluations ({st['sdf_evals'] / st['dense_evals']:.1%} of the dense grid), "
           f"{st['seconds']:.1f} s")
-    for line in steps_report(mesh.metadata):
-        print(line)
+    print("".join(f"{line}\n" for line in steps_report(mesh.metadata)), end="")
     if options.any():
         n_before = len(mesh.faces)
         mesh = clean_up(mesh, options)
