@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from neus_l0.commands._mesh_steps import add_mesh_step_flags
 from neus_l0.commands._overrides import accept_overrides
 
 
@@ -61,13 +62,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--resolution", type=int, default=None,
                    help="marching-cubes resolution of each run's mesh (default: 128 on a CPU, "
                         "256 on CUDA)")
-    p.add_argument("--close-underside", action="store_true",
-                   help="mesh each run with the side no training view sees closed flat "
-                        "(as `neus-l0 mesh --close-underside`)")
-    p.add_argument("--drop-outside-masks", action="store_true",
-                   help="drop each mesh's pieces a training view sees outside its mask")
-    p.add_argument("--inset", type=float, default=0.0, metavar="K",
-                   help="mesh each run at the SDF's level -K/s (as `neus-l0 mesh --inset`)")
+    add_mesh_step_flags(p)  # each run's mesh, as `neus-l0 mesh`
     p.add_argument("--eval-density", type=float, default=None,
                    help="Chamfer sampling density in world units (default: 0.5 on a CPU, the "
                         "synthetic scenes' point spacing; 0.2, the DTU protocol, on CUDA)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from neus_l0.commands._mesh_steps import add_mesh_step_flags
 from neus_l0.commands._threads import add_threads_flag
 
 
@@ -22,14 +23,7 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--clean", action=argparse.BooleanOptionalAction, default=True,
                    help="drop floating specks: pieces whose bounding-box diagonal is under 5%% "
                         "of the main piece's (default on; thin parts cut off by the grid stay)")
-    p.add_argument("--close-underside", action="store_true",
-                   help="close the side no training view sees flat, under the lowest point "
-                        "they see in their masks (needs the scene's masks; extracts twice)")
-    p.add_argument("--drop-outside-masks", action="store_true",
-                   help="drop connected pieces that a training view sees outside its mask "
-                        "(over half their vertices off the mask dilated by 2 px)")
-    p.add_argument("--inset", type=float, default=0.0, metavar="K", help="extract the level "
-                   "-K/s, s NeuS's learned sharpness (the zero level sits ~0.5/s outside)")
+    add_mesh_step_flags(p)
     p.add_argument("--colors", action="store_true",
                    help="vertex colours from the colour network (view = -normal)")
     p.add_argument("--texture", action="store_true",
@@ -73,8 +67,6 @@ def _check(args: argparse.Namespace):
 
     if args.resolution < 8:
         raise NeusL0Error(f"--resolution {args.resolution}: must be at least 8")
-    if not 0 <= args.inset < float("inf"):
-        raise NeusL0Error(f"--inset {args.inset}: must be a finite number >= 0")
     out = check_not_input(args.out if args.out else Path(args.run) / "mesh.ply", "--out",
                           [args.run, args.checkpoint])
     check_output_file(out, "--out")

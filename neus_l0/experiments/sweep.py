@@ -440,8 +440,9 @@ def check_spec(spec: SweepSpec) -> None:
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:  # before any scene is built
         raise NeusL0Error(f"--scenes: two scenes share a name ({', '.join(twice)})")
-    if not 0 <= spec.inset < float("inf"):
-        raise NeusL0Error(f"--inset {spec.inset}: must be a finite number >= 0")
+    from neus_l0.mesh.from_run import MeshSteps
+
+    MeshSteps(spec.close_underside, spec.drop_outside_masks, spec.inset)  # --inset's range
     bad = [s for s in spec.samplers if s not in SAMPLERS]
     if bad:
         raise NeusL0Error(f"--samplers: unknown {', '.join(bad)} (choose from "

@@ -43,6 +43,10 @@ class MeshSteps:
     drop_outside_masks: bool = False
     inset: float = 0.0
 
+    def __post_init__(self):
+        if not 0 <= self.inset < float("inf"):
+            raise NeusL0Error(f"--inset {self.inset}: must be a finite number >= 0")
+
     @property
     def needs_masks(self) -> bool:
         """Whether a step reads the run's scene and masks."""
@@ -131,12 +135,17 @@ def training_views(run_dir: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
     try:
         run = json.loads(record.read_text())
         scene = Path(run["scene"])
-    except (OSError, ValueError, KeyError, TypeError) as e:
+        train = (run.get("views") or {}).get("train")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
         raise NeusL0Error(f"{record}: cannot read the run's scene, which the masks come "
                           f"from ({e})") from None
     projections = read_world_mats(scene)
     masks = read_masks(scene)
-    train = run.get("views", {}).get("train") or list(range(len(projections)))
+    train = train or list(range(len(projections)))
+    if not (isinstance(train, list)
+            and all(isinstance(v, int) and 0 <= v < len(projections) for v in train)):
+        raise NeusL0Error(f"{record}: views.train must list view indices below "
+                          f"{len(projections)} (the scene's cameras), got {str(train)[:80]}")
     missing = [v for v in train if v not in masks]
     if missing:
         raise NeusL0Error(f"{scene / 'mask'}: no mask for training view(s) {missing[:5]}; "

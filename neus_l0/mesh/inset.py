@@ -7,7 +7,8 @@ of them lie outside, about 0.1-0.9 of the logistic's scale 1/s (NeuS's learned s
 ``model.variance.inv_s()``), the width over which the rendering weights spread. The level
 ``f = -K / s`` is extracted instead: the mesh moves inward by K / s along the SDF's normal,
 an offset that shrinks as training sharpens s. Off by default: at K = 0.5 it lowered the
-Chamfer of 10 of 13 meshes (0.98x at 400x300, 0.95x on the demo scene) but not on every
+Chamfer of 10 of 13 meshes (0.98x at 400x300, 0.95x on the demo scene; measured by moving
+the vertices K/s along their normals, the option itself checked on two) but not on every
 scene, and the demo's thin horn rose 13 % (docs/BENCHMARKS.md, issue #35's section).
 
 Pure functions, except that `inset` wraps a model for `neus_l0.mesh.extract.extract_mesh`.

@@ -104,10 +104,16 @@ def test_one_piece_is_never_split_and_all_outside_is_an_error(views):
                       [np.zeros((H, W), bool)] * len(P))
 
 
-def test_the_run_record_names_the_scene_it_reads(run_copy, refused):
+@pytest.mark.parametrize("damage", [
+    lambda run: run.pop("scene"),
+    lambda run: run.update(views="all"),  # not a dict
+    lambda run: run.update(views={"train": [0, 999]}),  # no such camera
+    lambda run: run.update(views={"train": "0,1"}),
+])
+def test_a_damaged_run_record_is_named(run_copy, refused, damage):
     record = run_copy / "run.json"
     run = json.loads(record.read_text())
-    del run["scene"]
+    damage(run)
     record.write_text(json.dumps(run))
     refused(["mesh", str(run_copy), "--resolution", "32", "--drop-outside-masks",
              "--out", str(run_copy.parent / "m.ply")], "run.json")

@@ -1,0 +1,19 @@
+"""The optional mesh steps' flags, shared by `neus-l0 mesh` and `neus-l0 bench`
+(`neus_l0.mesh.from_run.MeshSteps`)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_mesh_step_flags(p: argparse.ArgumentParser) -> None:
+    """--close-underside, --drop-outside-masks and --inset K (all off by default)."""
+    p.add_argument("--close-underside", action="store_true",
+                   help="close the side no training view sees flat, under the lowest point "
+                        "they see in their masks (needs the scene's masks; extracts twice)")
+    p.add_argument("--drop-outside-masks", action="store_true",
+                   help="drop connected pieces that a training view sees outside its mask "
+                        "(over half their vertices off the mask dilated by 2 px)")
+    p.add_argument("--inset", type=float, default=0.0, metavar="K",
+                   help="extract the SDF's level -K/s, s NeuS's learned sharpness (a trained "
+                        "zero level sits 0.1-0.9 of 1/s outside the true surface; default 0)")
