@@ -124,6 +124,7 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "igr_weight"): at_least(0),
     (TrainConfig, "mask_weight"): at_least(0),
     (TrainConfig, "carve_weight"): at_least(0, "0: off"),
+    (TrainConfig, "hit_color_floor"): Range(0, 1, note="0: off (NeuS's composite over black)"),
     (TrainConfig, "seed"): at_least(0),
     (TrainConfig, "log_every"): at_least(1),
     (TrainConfig, "val_every"): at_least(0, "0: never"),

@@ -31,6 +31,23 @@ def color_l1(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
     return ((pred - target).abs() * mask).sum() / (mask.sum() + 1e-5)
 
 
+def hit_color(color: Tensor, weight_sum: Tensor, floor: float) -> Tensor:
+    """The colour of the surface a ray hits: the composite over black divided by the ray's
+    opacity, floored (``train.hit_color_floor``).
+
+    Above the floor the result is invariant to scaling all of a ray's weights, so the colour
+    term no longer pulls a grazing ray's opacity towards 1 (the mask term alone sets it);
+    below it, the composite scaled by ``1 / floor``.
+
+    Args:
+        color: (B, 3) ``sum_i w_i c_i``; weight_sum: (B, 1) ``sum_i w_i``; floor: in (0, 1].
+
+    Returns:
+        (B, 3).
+    """
+    return color / weight_sum.clamp_min(floor)
+
+
 def weighted_color_l1(pred: Tensor, target: Tensor, mask: Tensor, weight: Tensor,
                       foreground: float) -> Tensor:
     """The colour term of rays drawn by an error map, each weighted by 1 / (P p).
@@ -182,7 +199,8 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         out: `neus_l0.render.volume.render_rays` output.
         target_rgb: (B, 3); mask: (B, 1) binary (ones when masks are unused).
         cfg: `igr_weight`, `mask_weight`, `eikonal_fraction` (below 1: the Eikonal term
-            over a random subset of the samples, drawn from `generator`).
+            over a random subset of the samples, drawn from `generator`),
+            `hit_color_floor` (with masks, above 0: the colour term on `hit_color`).
         generator: random source of the Eikonal subset.
         mask_scale: factor on the mask term: the fraction of all pixels that the batch was
             drawn from (1: uniform over every pixel, as NeuS). Pixels whose rays cannot
@@ -205,10 +223,13 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
         ``curvature_loss``, ``photo_loss``, ``carve_loss``, ``psnr``.
     """
+    pred = out.color
+    if cfg.hit_color_floor > 0 and cfg.mask_weight > 0:
+        pred = hit_color(out.color, out.weight_sum, cfg.hit_color_floor)
     if ray_weight is None:
-        color = color_l1(out.color, target_rgb, mask)
+        color = color_l1(pred, target_rgb, mask)
     else:
-        color = weighted_color_l1(out.color, target_rgb, mask, ray_weight, foreground)
+        color = weighted_color_l1(pred, target_rgb, mask, ray_weight, foreground)
     if cfg.eikonal_fraction < 1.0:
         eik = eikonal_subset(out.gradients, out.eikonal_mask, cfg.eikonal_fraction, generator,
                              eikonal_idx)

@@ -308,3 +308,35 @@ def test_floor_height_keeps_the_vertices_over_the_floor_and_measures_their_rise(
     h = tool.floor_heights(np.vstack([raised, far]), np.array([0.0, 0.0, 10.0]), 7.0, 25.0)
     inside = (np.hypot(xy[:, 0], xy[:, 1]) < 7.0).sum()
     assert h.size == inside > 0 and np.allclose(h, 2.5)
+
+
+def test_surface_offset_reads_a_shell_of_the_scenes_surface_as_its_offset(tiny_scene, tmp_path,
+                                                                          capsys):
+    """The true mesh moved 0.4 along its vertex normals: median +0.4, all outside; moved in:
+    -0.4, none outside; the true mesh about 0."""
+    import numpy as np
+    import trimesh
+
+    tool = _tool("surface_offset")
+    from neus_l0.synthetic.scene import WORLD_OFFSET
+    from neus_l0.synthetic.shapes import Translated, builtin_shape
+
+    gt = trimesh.load(tiny_scene / "gt_mesh.ply", process=False)
+    normals = np.asarray(gt.vertex_normals)
+    probe = tool.signed_distances(np.asarray(gt.vertices) + 0.2 * normals,
+                                  Translated(builtin_shape("demo").sdf, WORLD_OFFSET))
+    normals = normals * (1.0 if np.median(probe) > 0 else -1.0)  # outward, whatever the winding
+    paths = []
+    for k in (0.0, 0.4, -0.4):
+        m = trimesh.Trimesh(gt.vertices + k * normals, gt.faces, process=False)
+        paths.append(tmp_path / f"m{k:+.1f}.ply")
+        m.export(paths[-1])
+    assert tool.main([str(tiny_scene), *map(str, paths), "--samples", "20000"]) == 0
+    rows = [r.split("|") for r in capsys.readouterr().out.splitlines()[2:]]
+    med = [float(r[4]) for r in rows]
+    out = [float(r[5]) for r in rows]
+    assert abs(med[0]) < 0.05 and med[1] == pytest.approx(0.4, abs=0.05)
+    assert med[2] == pytest.approx(-0.4, abs=0.05)
+    assert out[1] > 0.95 and out[2] < 0.05
+    d = tool.signed_distances(np.zeros((0, 3)), lambda x: x[:, 0])
+    assert d.shape == (0,)
