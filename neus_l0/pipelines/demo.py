@@ -198,8 +198,9 @@ def _mesh_score_draw(opts: DemoOptions, paths: dict[str, Path], device: str,
 
 def _train_demo(opts: DemoOptions, cfg, scene_dir: Path, run_dir: Path, device: str,
                 threads: int):
-    """Train (or resume) the demo's run: `train.compile: auto` resolved first, so that a
-    re-run is checked against the settings the run really used."""
+    """Train (or resume) the demo's run. A resume resolves `train.compile: auto` first, so
+    that it is checked against the settings the run really used; a fresh run leaves it to
+    `train`, which times a few eager steps to decide (`neus_l0.train.compile_auto`)."""
     from neus_l0.formats.neus import load_scene
     from neus_l0.run.checkpoints import checkpoint_iteration, latest_checkpoint
     from neus_l0.train.compile_auto import resolve_compile
@@ -216,19 +217,23 @@ def _train_demo(opts: DemoOptions, cfg, scene_dir: Path, run_dir: Path, device: 
         # the user's settings, planned as the run was, against the run's
         check_same_settings(run_dir, planned_config(cfg, recorded.train.iters))
         cfg = recorded
-    cfg, line = resolve_compile(cfg, device, checkpoint_iteration(newest) if resume else 0,
-                                run_dir)
-    if line:
-        print(f"neus-l0: {line}", file=sys.stderr, flush=True)
-    if resume:
+    if resume:  # the choice the run made; a fresh run's `train` decides on a timed step
+        cfg, line = resolve_compile(cfg, device, checkpoint_iteration(newest), run_dir)
+        if line:
+            print(f"neus-l0: {line}", file=sys.stderr, flush=True)
         check_same_settings(run_dir, cfg)
     cap = f", {cfg.train.max_seconds:.0f} s budget" if cfg.train.max_seconds else ""
     length = (f"iterations planned for a {cfg.train.budget:.0f} s budget" if cfg.train.budget
               else f"{cfg.train.iters} iterations at most{cap}")
     print(f"[2/4] training ({length}, sampler {cfg.sampler.name}, {threads} "
-          f"thread{'s' if threads > 1 else ''}, {'compiled' if cfg.train.compile else 'eager'})"
+          f"thread{'s' if threads > 1 else ''}, {_compile_word(cfg.train.compile)})"
           f" into {run_dir}{' (resuming)' if resume else ''} ...", flush=True)
     return train(scene, cfg, run_dir, device=device, resume=resume, progress=not opts.quiet)
+
+
+def _compile_word(choice) -> str:
+    """The [2/4] line's word for ``train.compile`` (``auto``: `train` decides and says so)."""
+    return {True: "compiled", False: "eager"}.get(choice, "compile: auto")
 
 
 def draw_comparison(scene_dir, mesh, path, score: dict | None) -> Path:

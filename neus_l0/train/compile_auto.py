@@ -6,7 +6,9 @@ run does not win back (docs/BENCHMARKS.md, "When does the step compile, and what
 compile cost?"). `auto` weighs the two:
 
     saving  = min(iterations left x eager step, train.max_seconds) x (1 - compiled fraction)
-    compile = the expected compile time (warm when this step was compiled here before)
+    compile = the expected compile time (warm when this step was compiled here before),
+              scaled on the CPU by how much slower than the cost model the eager step ran
+              (`machine_speed`)
 
 and compiles when the saving is larger. The eager step time is measured: a few timed eager
 steps on the run itself, undone after (`neus_l0.train.probe`), noted in a small record in
@@ -63,6 +65,8 @@ COLD_COMPILE_S = {"cpu": 45.0, "cuda": 90.0}
 #: compile (docs/BENCHMARKS.md, "When does the step compile, and what does a cold compile
 #: cost?"); once the record holds a warm compile, its time replaces this.
 WARM_COMPILE_S = {"cpu": 12.0, "cuda": 20.0}
+#: The most a measured eager step may scale the expected compile (`machine_speed`).
+MAX_SLOWDOWN = 8.0
 #: How far the cost model may be off for a setting never measured here (it said 0.6 s for
 #: a `wmask` step that took 14-20 s on a 2-core CPU).
 UNSEEN_FACTOR = 30.0
@@ -155,7 +159,8 @@ class CompileChoice:
                     f"~{1000 * self.eager_step_s:.0f} ms, {how}; compiling costs "
                     f"~{self.compile_s:.0f} s, {cache}){why}")
         return (f"train.compile=auto: eager (compiling would cost ~{self.compile_s:.0f} s, "
-                f"{cache}, to save ~{self.saving_s:.0f} s){why}")
+                f"{cache}, to save ~{self.saving_s:.0f} s of eager steps at "
+                f"~{1000 * self.eager_step_s:.0f} ms, {how}){why}")
 
 
 def eager_step_seconds(cfg: Config, device: str) -> float:
@@ -167,6 +172,20 @@ def eager_step_seconds(cfg: Config, device: str) -> float:
     samples = cfg.train.batch_size * (r.n_samples + r.n_importance + r.n_outside)
     threads = max(1, torch.get_num_threads())
     return EAGER_CPU_S_PER_SAMPLE * samples / threads ** 0.5
+
+
+def machine_speed(measured_s: float | None, modelled_s: float) -> float:
+    """How many times slower than the cost model's machine this one runs the step: the
+    measured eager step over the modelled one, in [1, `MAX_SLOWDOWN`] (1 unmeasured).
+
+    The expected compile times are a faster machine's; compiling (tracing, then g++ on each
+    kernel) slows down with the machine as the eager step does. On a VM where the eager
+    `demo` step took 2-4x the model's, a cold compile took 70-170 s against the 45 s
+    expected, and the demo's first run, compiling, trained one iteration in its 124 s.
+    """
+    if not measured_s or modelled_s <= 0:
+        return 1.0
+    return min(MAX_SLOWDOWN, max(1.0, measured_s / modelled_s))
 
 
 def _steps_time(cfg: Config, start_iteration: int, step: float) -> float:
@@ -198,13 +217,15 @@ def choose_compile(cfg: Config, device: str, start_iteration: int = 0,
     """
     kind = "cuda" if device == "cuda" else "cpu"
     measured = eager_s or recorded_eager(record or {}, eager_key(cfg, kind))
-    step = measured or eager_step_seconds(cfg, kind)
+    modelled = eager_step_seconds(cfg, kind)
+    step = measured or modelled
     saving = _steps_time(cfg, start_iteration, step) * (1.0 - COMPILED_FRACTION[kind])
     entry = (record or {}).get(step_key(as_compiled(cfg), kind))
     warm = isinstance(entry, dict) and entry.get("compiles", 0) > 0
-    expected = COLD_COMPILE_S[kind]
+    slower = machine_speed(measured, modelled) if kind == "cpu" else 1.0
+    expected = COLD_COMPILE_S[kind] * slower
     if warm:
-        expected = WARM_COMPILE_S[kind]
+        expected = WARM_COMPILE_S[kind] * slower
         if entry.get("compiles", 0) > 1:  # its last compile was itself a warm one
             expected = max(1.0, float(entry.get("seconds", expected)))
     # A budget run plans its iterations after the compile, from the time it took: a warm

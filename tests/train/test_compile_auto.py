@@ -202,3 +202,52 @@ def test_a_schema_key_added_at_its_default_keeps_every_step_key(monkeypatch):
     assert ca.step_key(cfg, "cpu") == key
     monkeypatch.setattr(ca, "to_dict", lambda value: with_new_key(value, new=4))
     assert ca.step_key(cfg, "cpu") != key
+
+
+def test_machine_speed_is_the_measured_over_the_modelled_step_clipped():
+    assert ca.machine_speed(None, 0.03) == 1.0
+    assert ca.machine_speed(0.06, 0.03) == pytest.approx(2.0)
+    assert ca.machine_speed(0.01, 0.03) == 1.0  # a faster machine keeps the expectation
+    assert ca.machine_speed(3.0, 0.03) == ca.MAX_SLOWDOWN
+
+
+@pytest.mark.parametrize("slower,expect", [(1.0, True), (1.5, True), (3.0, False)])
+def test_a_slow_machine_expects_a_slower_compile_and_a_capped_demo_stays_eager(
+        one_thread, slower, expect):
+    """The demo's 124 s cap saves ~68 s by compiling: worth a 45 s compile, not the 135 s a
+    machine whose eager step runs 3x the cost model's should expect (such a VM compiled for
+    70-170 s, and the demo's first run trained one iteration)."""
+    cfg = load_config("demo", ["train.iters=3500", "train.max_seconds=124"])
+    modelled = ca.eager_step_seconds(cfg, "cpu")
+    choice = ca.choose_compile(cfg, "cpu", record={}, eager_s=slower * modelled)
+    assert choice.measured and choice.compile_s == pytest.approx(ca.COLD_COMPILE_S["cpu"]
+                                                                 * slower)
+    assert choice.saving_s == pytest.approx(124 * (1 - ca.COMPILED_FRACTION["cpu"]))
+    assert choice.compile is expect
+    key = ca.step_key(ca.as_compiled(cfg), "cpu")  # a warm cache scales the same way
+    warm = ca.choose_compile(cfg, "cpu", record={key: {"compiles": 1, "seconds": 50}},
+                             eager_s=slower * modelled)
+    assert warm.compile_s == pytest.approx(ca.WARM_COMPILE_S["cpu"] * slower)
+    cuda = ca.choose_compile(cfg, "cuda", record={}, eager_s=10.0)
+    assert cuda.compile_s == ca.COLD_COMPILE_S["cuda"]  # the GPU's constants are launch-bound
+
+
+def test_a_fresh_demo_decides_compiling_on_a_timed_step(small, monkeypatch, tmp_path, capsys):
+    """The demo leaves `auto` to `train`, which times eager steps first (it used to decide
+    on the cost model alone, before `train`, and could not see a slow machine)."""
+    import neus_l0.pipelines.demo as demo
+    from neus_l0.cli import main
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
+    out = tmp_path / "demo"
+    # long enough to be worth timing (`worth_measuring`), too short to repay a compile
+    argv = ["demo", "--out", str(out), "--resolution", "32", "--threads", "1", "--quiet",
+            *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
+            "train.iters=60", "train.max_seconds=30", "train.val_every=0",
+            "train.compile=auto"]
+    assert main(argv) == 0
+    cap = capsys.readouterr()
+    assert "compile: auto" in cap.out
+    assert "train.compile=auto: eager" in cap.err and "ms, measured" in cap.err, cap.err
+    assert load_config(out / "run" / "config.yaml").train.compile is False
