@@ -131,10 +131,15 @@ class TrainResult:
 
 
 def _check_scene(scene: Scene, cfg: Config) -> None:
-    """Refuse a mask loss without masks; warn (one line) of cameras inside the unit sphere."""
+    """Refuse a mask loss without masks, and the hit colour over a white background; warn
+    (one line) of cameras inside the unit sphere."""
     if cfg.train.mask_weight > 0 and not scene.has_masks:
         raise ConfigError(f"{scene.root}: train.mask_weight={cfg.train.mask_weight} but the "
                           "scene has no mask/ folder (use --conf womask or train.mask_weight=0)")
+    if cfg.train.hit_color_floor > 0 and cfg.render.white_background:
+        raise ConfigError(f"train.hit_color_floor={cfg.train.hit_color_floor} divides the "
+                          "composite over black by the opacity; render.white_background adds "
+                          "white behind it (turn one of them off)")
     line = cameras_inside_warning(scene)
     if line:
         print(f"neus-l0: warning: {line}", file=sys.stderr, flush=True)

@@ -90,3 +90,23 @@ def test_on_an_exact_sphere_the_composite_pulls_the_silhouette_out_and_hit_colou
 def test_the_floor_is_checked(tmp_path):
     with pytest.raises(ConfigError, match="hit_color_floor"):
         load_config(None, ["train.hit_color_floor=1.5"])
+
+
+def test_a_white_background_is_refused_with_the_hit_colour(tiny_scene, tmp_path, train_cli):
+    from neus_l0.cli import main
+
+    argv = train_cli(tiny_scene, tmp_path / "run", "train.hit_color_floor=0.5",
+                     "render.white_background=true")
+    assert main(argv) == 2
+    assert not (tmp_path / "run" / "checkpoints").exists()
+
+
+def test_a_run_with_the_hit_colour_trains(tiny_scene, tmp_path, train_cli):
+    import json
+
+    from neus_l0.cli import main
+
+    assert main(train_cli(tiny_scene, tmp_path / "run", "train.hit_color_floor=0.5",
+                          "train.iters=40")) == 0
+    lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert all(m["loss"] == m["loss"] for m in lines if "loss" in m)  # finite, not NaN
