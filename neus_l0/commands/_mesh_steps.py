@@ -15,5 +15,7 @@ def add_mesh_step_flags(p: argparse.ArgumentParser) -> None:
                    help="drop connected pieces that a training view sees outside its mask "
                         "(over half their vertices off the mask dilated by 2 px)")
     p.add_argument("--inset", type=float, default=0.0, metavar="K",
-                   help="extract the SDF's level -K/s, s NeuS's learned sharpness (a trained "
-                        "zero level sits 0.1-0.9 of 1/s outside the true surface; default 0)")
+                   help="extract the SDF's level -K/s, s NeuS's learned sharpness (a zero level "
+                        "trained with NeuS's colour composite over black sits 0.1-0.9 of 1/s "
+                        "outside the true surface; train.hit_color_floor removes most of it; "
+                        "default 0)")
