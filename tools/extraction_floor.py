@@ -24,7 +24,6 @@ the meshes.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import types
@@ -40,23 +39,16 @@ from neus_l0.errors import NeusL0Error
 def exact_model(scene_dir: Path) -> tuple[types.SimpleNamespace, np.ndarray, str]:
     """(a stand-in with ``.sdf.sdf(p)`` in the normalised frame, scale_mat (4, 4), the shape's
     name) of a built-in synthetic scene."""
-    from neus_l0.synthetic.scene import WORLD_OFFSET
-    from neus_l0.synthetic.shapes import BUILTIN_SHAPES, builtin_shape
+    from neus_l0.synthetic.scene import scene_world_sdf
 
+    sdf, name = scene_world_sdf(scene_dir)  # names scene.json when it is not a built-in's
     try:
-        info = json.loads((scene_dir / "scene.json").read_text(encoding="utf-8"))
         scale_mat = np.asarray(np.load(scene_dir / "cameras_sphere.npz")["scale_mat_0"],
                                np.float64)
     except (OSError, ValueError, KeyError) as exc:
         raise NeusL0Error(f"{scene_dir}: not a scene made by `neus-l0 synth` ({exc})") from exc
-    name = info.get("source")
-    if name not in BUILTIN_SHAPES:
-        raise NeusL0Error(f"{scene_dir / 'scene.json'}: source {name!r} is not a built-in "
-                          f"analytic shape ({', '.join(sorted(BUILTIN_SHAPES))})")
-    sdf = builtin_shape(name).sdf
     scale = float(scale_mat[0, 0])
-    # the scene places the shape at WORLD_OFFSET (`neus_l0.synthetic.scene`)
-    center = torch.as_tensor(scale_mat[:3, 3] - np.asarray(WORLD_OFFSET), dtype=torch.float64)
+    center = torch.as_tensor(scale_mat[:3, 3], dtype=torch.float64)
 
     def normalised_sdf(p: torch.Tensor) -> torch.Tensor:
         """(P, 3) normalised points -> (P, 1) SDF in normalised units."""

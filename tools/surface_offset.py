@@ -21,8 +21,8 @@ import numpy as np
 import torch
 import trimesh
 
-from neus_l0.synthetic.scene import WORLD_OFFSET
-from neus_l0.synthetic.shapes import BUILTIN_SHAPES, Translated, builtin_shape
+from neus_l0.errors import NeusL0Error
+from neus_l0.synthetic.scene import scene_world_sdf
 
 
 def signed_distances(points: np.ndarray, sdf) -> np.ndarray:
@@ -50,17 +50,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--near", type=float, default=3.0, help="world units (default 3)")
     ap.add_argument("--features", action="store_true", help="a row per feature ball too")
     a = ap.parse_args(argv)
-    meta = a.scene / "scene.json"
-    if not meta.is_file():
-        raise SystemExit(f"{meta}: missing (a scene from neus-l0 synth has one)")
-    name = json.loads(meta.read_text()).get("name")
-    if name not in BUILTIN_SHAPES:
-        raise SystemExit(f"{meta}: scene {name!r} is not a built-in analytic shape")
+    try:
+        sdf, _ = scene_world_sdf(a.scene)
+    except NeusL0Error as exc:
+        raise SystemExit(str(exc)) from None
     missing = [str(m) for m in a.meshes if not m.is_file()]
     if missing:
         raise SystemExit(f"no such mesh: {', '.join(missing)}")
-    sdf = Translated(builtin_shape(name).sdf, WORLD_OFFSET)
-    feats = json.loads((a.scene / "features.json").read_text())["features"] if a.features else []
+    feats = []
+    if a.features:
+        path = a.scene / "features.json"
+        try:
+            feats = json.loads(path.read_text(encoding="utf-8"))["features"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise SystemExit(f"{path}: unreadable ({exc})") from None
     print("| mesh | part | points | median (world) | outside |")
     print("|---|---|---:|---:|---:|")
     for m in a.meshes:

@@ -587,3 +587,23 @@ def builtin_names() -> list[str]:
 
 __all__ = ["make_scene", "builtin_names", "BuiltinShape", "check_scene_args", "check_render_memory",
            "render_bytes"]
+
+
+def scene_world_sdf(scene_dir: str | Path) -> tuple[Translated, str]:
+    """(the exact SDF in world units, the shape's name) of a scene that `neus-l0 synth` made
+    from a built-in analytic shape (its ``scene.json``'s ``source``).
+
+    Raises:
+        NeusL0Error: naming ``scene.json`` when it is missing, unreadable or names no
+            built-in shape (a mesh file has no analytic SDF).
+    """
+    path = Path(scene_dir) / "scene.json"
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise NeusL0Error(f"{path}: not a scene made by `neus-l0 synth` ({exc})") from exc
+    name = info.get("source") if isinstance(info, dict) else None
+    if name not in BUILTIN_SHAPES:
+        raise NeusL0Error(f"{path}: source {name!r} is not a built-in analytic shape "
+                          f"({', '.join(sorted(BUILTIN_SHAPES))})")
+    return Translated(builtin_shape(name).sdf, WORLD_OFFSET), name

@@ -340,3 +340,23 @@ def test_surface_offset_reads_a_shell_of_the_scenes_surface_as_its_offset(tiny_s
     assert out[1] > 0.95 and out[2] < 0.05
     d = tool.signed_distances(np.zeros((0, 3)), lambda x: x[:, 0])
     assert d.shape == (0,)
+
+
+def test_the_scenes_world_sdf_is_zero_on_its_true_mesh_and_bad_folders_are_named(tiny_scene,
+                                                                                 tmp_path):
+    import numpy as np
+    import torch
+    import trimesh
+
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.synthetic.scene import scene_world_sdf
+
+    sdf, name = scene_world_sdf(tiny_scene)
+    assert name == "demo"
+    gt = np.asarray(trimesh.load(tiny_scene / "gt_mesh.ply", process=False).vertices)
+    assert np.abs(sdf(torch.as_tensor(gt, dtype=torch.float64)).numpy()).max() < 1e-3
+    with pytest.raises(NeusL0Error, match="scene.json"):
+        scene_world_sdf(tmp_path)  # no scene.json
+    (tmp_path / "scene.json").write_text('{"source": "bunny.obj"}')
+    with pytest.raises(NeusL0Error, match="not a built-in analytic shape"):
+        scene_world_sdf(tmp_path)
