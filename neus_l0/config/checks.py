@@ -124,6 +124,7 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "igr_weight"): at_least(0),
     (TrainConfig, "mask_weight"): at_least(0),
     (TrainConfig, "carve_weight"): at_least(0, "0: off"),
+    (TrainConfig, "fill_weight"): at_least(0, "0: off"),
     (TrainConfig, "hit_color_floor"): Range(0, 1, note="0: off (NeuS's composite over black)"),
     (TrainConfig, "seed"): at_least(0),
     (TrainConfig, "log_every"): at_least(1),
@@ -237,6 +238,9 @@ def _check_photo(obj: PhotoConfig, bad: Callable[[str, str], ConfigError]) -> No
 def _check_train(obj: TrainConfig, bad: Callable[[str, str], ConfigError]) -> None:
     if obj.carve_weight > 0 and obj.mask_weight <= 0:
         raise bad("carve_weight", f"{obj.carve_weight}: carving reads the masks; it needs "
+                  "train.mask_weight > 0")
+    if obj.fill_weight > 0 and obj.mask_weight <= 0:
+        raise bad("fill_weight", f"{obj.fill_weight}: filling reads the masks; it needs "
                   "train.mask_weight > 0")
 
 

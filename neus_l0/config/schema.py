@@ -458,6 +458,12 @@ class TrainConfig:
     at 100 it lowered the demo scene's accuracy (200x150 views) to 0.65x; at 10 on 400x300
     views the accuracy to 0.90x but not the pits (docs/BENCHMARKS.md, "Where does the error
     live")."""
+    fill_weight: float = 0.0
+    """Weight of silhouette filling (`neus_l0.train.losses.missed_rays`): on the rays whose
+    mask is 1 but that render below 0.5 opacity, how far outside the surface the shallowest
+    sample stays (0: off; needs the masks, `mask_weight` > 0). The mask BCE gives such a ray
+    no gradient once it passes a few 1/s from every surface (its clip at 1e-3), so a thin
+    part that did not form early never forms; this term's gradient does not fade."""
     seed: int = 0
     """Seed of the network initialisation and of the ray / sample generator."""
     log_every: int = 100

@@ -13,7 +13,7 @@ from neus_l0.config.schema import TrainConfig
 
 #: The names of what `neus_loss` returns, in the order the step reports them.
 LOSS_NAMES = ("loss", "color_loss", "eikonal_loss", "mask_loss", "curvature_loss", "photo_loss",
-              "carve_loss", "psnr")
+              "carve_loss", "fill_loss", "psnr")
 
 if TYPE_CHECKING:
     from neus_l0.render.volume import RenderOutput
@@ -154,6 +154,41 @@ def free_space(sdf: Tensor, empty: Tensor, inside: Tensor, weight: Tensor | None
     return per_ray.sum() / max(1, sdf.shape[0])
 
 
+def missed_rays(sdf: Tensor, full: Tensor, inside: Tensor, opacity: Tensor,
+                weight: Tensor | None = None) -> Tensor:
+    """Silhouette filling: how far outside the surface the rays stay that see the object
+    but render as misses (the mask BCE's dead zone).
+
+    A pixel whose mask is 1 sees the object, so the SDF goes negative somewhere along its
+    ray. The mask BCE cannot say so once a ray passes a few 1/s from every surface: its
+    opacity falls under the BCE's clip (1e-3) and in float32 its alpha is the guard alone,
+    so its gradient is exactly 0 (a thin rod that did not form early never forms). The term
+    is ``sum_b m_b u_b w_b relu(min_n sdf_bn) / B`` over the samples inside the unit sphere,
+    with ``m_b`` = 1 on the rays whose mask is 1 and ``u_b`` = 1 where the ray renders below
+    0.5 opacity (read detached). It is 0 on every ray that hits (no bias on a correct
+    surface) and its gradient, 1 whatever the distance, reaches the one sample that lies
+    shallowest: the counterpart of `free_space` (IDR's mask term in its hinge limit).
+
+    Args:
+        sdf: (B, N) the SDF at the rays' samples; full: (B,) in {0, 1}, the rays whose mask
+            is 1; inside: (B, N) in {0, 1}, the samples that count (inside the unit sphere,
+            on rays that got samples); opacity: (B, 1) the rays' rendered opacity; weight:
+            (B,) importance weights of the rays (None: uniform).
+
+    Returns:
+        () loss, a mean over the batch (rays off `full`, rays that render 0.5 or more and
+        rays without a counted sample count as 0).
+    """
+    missed = full * (opacity.detach()[:, 0] < 0.5).to(sdf.dtype)  # (B,)
+    counted = inside > 0
+    shallow = torch.where(counted, sdf, torch.full_like(sdf, float("inf"))).amin(dim=1)
+    shallow = torch.where(counted.any(dim=1), shallow, torch.zeros_like(shallow))  # (B,)
+    per_ray = shallow.clamp_min(0.0) * missed
+    if weight is not None:
+        per_ray = per_ray * weight
+    return per_ray.sum() / max(1, sdf.shape[0])
+
+
 def eikonal(gradients: Tensor, mask: Tensor) -> Tensor:
     """NeuS's Eikonal term: the mean of ``(|grad| - 1)^2`` over the samples `mask` keeps.
 
@@ -216,12 +251,13 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         terms: the terms the caller computes (they need the network), () each:
             ``curvature`` (`curvature`), added with ``cfg.curvature_weight``, and ``photo``
             (`neus_l0.train.photometric.photometric_term`), added with
-            ``cfg.photo.weight``, and ``carve`` (`free_space`), added with
-            ``cfg.carve_weight * mask_scale``; a missing one is 0.
+            ``cfg.photo.weight``, ``carve`` (`free_space`), added with
+            ``cfg.carve_weight * mask_scale``, and ``fill`` (`missed_rays`), added with
+            ``cfg.fill_weight * mask_scale``; a missing one is 0.
 
     Returns:
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
-        ``curvature_loss``, ``photo_loss``, ``carve_loss``, ``psnr``.
+        ``curvature_loss``, ``photo_loss``, ``carve_loss``, ``fill_loss``, ``psnr``.
     """
     pred = out.color
     if cfg.hit_color_floor > 0 and cfg.mask_weight > 0:
@@ -244,12 +280,15 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
     curvature_term = terms.get("curvature", torch.zeros_like(color))
     photo_term = terms.get("photo", torch.zeros_like(color))
     carve_term = terms.get("carve", torch.zeros_like(color))
+    fill_term = terms.get("fill", torch.zeros_like(color))
     if "curvature" in terms:
         loss = loss + cfg.curvature_weight * curvature_term
     if "photo" in terms:
         loss = loss + cfg.photo.weight * photo_term
     if "carve" in terms:
         loss = loss + cfg.carve_weight * mask_scale * carve_term
+    if "fill" in terms:
+        loss = loss + cfg.fill_weight * mask_scale * fill_term
     return {  # keys: LOSS_NAMES
         "loss": loss,
         "color_loss": color,
@@ -258,6 +297,7 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         "curvature_loss": curvature_term,
         "photo_loss": photo_term,
         "carve_loss": carve_term,
+        "fill_loss": fill_term,
         "psnr": masked_psnr(out.color.detach(), target_rgb, mask),
     }
 

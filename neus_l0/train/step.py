@@ -32,6 +32,7 @@ from neus_l0.train.losses import (
     curvature,
     eikonal_indices,
     free_space,
+    missed_rays,
     neus_loss,
     ray_errors,
 )
@@ -163,6 +164,8 @@ class StepInputs:
             rays' views and xy: (B, 2) their pixels (with `photo`).
         empty: (B,) 1 on the rays whose mask is exactly 0 (None: carving is off,
             `train.carve_weight`).
+        full: (B,) 1 on the rays whose mask is over 0.5 (None: filling is off,
+            `train.fill_weight`).
     """
 
     origins: Tensor
@@ -182,6 +185,7 @@ class StepInputs:
     view: Tensor | None = None
     xy: Tensor | None = None
     empty: Tensor | None = None
+    full: Tensor | None = None
 
 
 def _draw_pool(pool: PixelPool, n_rays: int, generator: torch.Generator,
@@ -218,6 +222,7 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
     raw = batch["mask"]
     mask = (raw > 0.5).float() if cfg.train.mask_weight > 0 else torch.ones_like(raw)
     empty = (raw[:, 0] == 0).float() if cfg.train.carve_weight > 0 else None
+    full = (raw[:, 0] > 0.5).float() if cfg.train.fill_weight > 0 else None
     anneal = (1.0 if cfg.train.anneal_end <= 0 else
               torch.tensor(cos_anneal_ratio(iteration, cfg.train.anneal_end),
                            device=scene.device))
@@ -226,7 +231,7 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
     return StepInputs(batch["origins"], batch["dirs"], batch["rgb"], mask, noise, eik_idx,
                       anneal, mask_scale, span, pick if emap is not None else None, weight,
                       emap.foreground if emap is not None else 1.0, curv_idx, photo,
-                      batch["view"] if on else None, batch["xy"] if on else None, empty)
+                      batch["view"] if on else None, batch["xy"] if on else None, empty, full)
 
 
 def curvature_at_samples(model: NeuSModel, origins: Tensor, dirs: Tensor, out: RenderOutput,
@@ -287,9 +292,12 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: 
                                                   inputs.curvature_idx)
     if inputs.photo is not None:
         terms["photo"] = photo_at_rays(model, inputs, out, cfg)
+    counted = out.inside_sphere * out.active[:, None].to(out.inside_sphere.dtype)
     if inputs.empty is not None:
-        counted = out.inside_sphere * out.active[:, None].to(out.inside_sphere.dtype)
         terms["carve"] = free_space(out.sdf, inputs.empty, counted, inputs.ray_weight)
+    if inputs.full is not None:
+        terms["fill"] = missed_rays(out.sdf, inputs.full, counted, out.weight_sum,
+                                    inputs.ray_weight)
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
                        eikonal_idx=inputs.eikonal_idx, ray_weight=inputs.ray_weight,
                        foreground=inputs.foreground, terms=terms)
