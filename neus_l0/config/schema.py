@@ -463,7 +463,8 @@ class TrainConfig:
     mask is 1 but that render below 0.5 opacity, how far outside the surface the shallowest
     sample stays (0: off; needs the masks, `mask_weight` > 0). The mask BCE gives such a ray
     no gradient once it passes a few 1/s from every surface (its clip at 1e-3), so a thin
-    part that did not form early never forms; this term's gradient does not fade."""
+    part that did not form early never forms; this term's gradient does not fade. It lets go
+    at 3/s (`neus_l0.train.step.FILL_MARGIN`), where the BCE takes over."""
     seed: int = 0
     """Seed of the network initialisation and of the ray / sample generator."""
     log_every: int = 100

@@ -155,7 +155,7 @@ def free_space(sdf: Tensor, empty: Tensor, inside: Tensor, weight: Tensor | None
 
 
 def missed_rays(sdf: Tensor, full: Tensor, inside: Tensor, opacity: Tensor,
-                weight: Tensor | None = None) -> Tensor:
+                weight: Tensor | None = None, margin: Tensor | float = 0.0) -> Tensor:
     """Silhouette filling: how far outside the surface the rays stay that see the object
     but render as misses (the mask BCE's dead zone).
 
@@ -163,17 +163,20 @@ def missed_rays(sdf: Tensor, full: Tensor, inside: Tensor, opacity: Tensor,
     ray. The mask BCE cannot say so once a ray passes a few 1/s from every surface: its
     opacity falls under the BCE's clip (1e-3) and in float32 its alpha is the guard alone,
     so its gradient is exactly 0 (a thin rod that did not form early never forms). The term
-    is ``sum_b m_b u_b w_b relu(min_n sdf_bn) / B`` over the samples inside the unit sphere,
-    with ``m_b`` = 1 on the rays whose mask is 1 and ``u_b`` = 1 where the ray renders below
-    0.5 opacity (read detached). It is 0 on every ray that hits (no bias on a correct
-    surface) and its gradient, 1 whatever the distance, reaches the one sample that lies
-    shallowest: the counterpart of `free_space` (IDR's mask term in its hinge limit).
+    is ``sum_b m_b u_b w_b relu(min_n sdf_bn - margin) / B`` over the samples inside the unit
+    sphere, with ``m_b`` = 1 on the rays whose mask is 1 and ``u_b`` = 1 where the ray renders
+    below 0.5 opacity (read detached). Its gradient, 1 whatever the distance, reaches the one
+    sample that lies shallowest: the counterpart of `free_space` (IDR's mask term in its
+    hinge limit). With a `margin` of a few 1/s it stops where the BCE's gradient is alive
+    again (at 3/s a ray renders ~0.05), so it leaves every silhouette to the BCE and is 0 on
+    every ray that hits (no bias on a correct surface).
 
     Args:
         sdf: (B, N) the SDF at the rays' samples; full: (B,) in {0, 1}, the rays whose mask
             is 1; inside: (B, N) in {0, 1}, the samples that count (inside the unit sphere,
             on rays that got samples); opacity: (B, 1) the rays' rendered opacity; weight:
-            (B,) importance weights of the rays (None: uniform).
+            (B,) importance weights of the rays (None: uniform); margin: () or a number, the
+            SDF under which a sample counts as close enough (normalised units).
 
     Returns:
         () loss, a mean over the batch (rays off `full`, rays that render 0.5 or more and
@@ -183,7 +186,7 @@ def missed_rays(sdf: Tensor, full: Tensor, inside: Tensor, opacity: Tensor,
     counted = inside > 0
     shallow = torch.where(counted, sdf, torch.full_like(sdf, float("inf"))).amin(dim=1)
     shallow = torch.where(counted.any(dim=1), shallow, torch.zeros_like(shallow))  # (B,)
-    per_ray = shallow.clamp_min(0.0) * missed
+    per_ray = (shallow - margin).clamp_min(0.0) * missed
     if weight is not None:
         per_ray = per_ray * weight
     return per_ray.sum() / max(1, sdf.shape[0])

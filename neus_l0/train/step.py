@@ -43,6 +43,9 @@ from neus_l0.train.schedule import cos_anneal_ratio, lr_factor
 #: NeuS's sharpness and the samples the step rendered. Every other list of metric names
 #: (the log line, TensorBoard) is built from this one.
 METRIC_NAMES = (*LOSS_NAMES, "inv_s", "samples")
+#: Silhouette filling (`train.fill_weight`) lets go of a missed ray at this many 1/s from
+#: the surface: there it renders ~0.05 and the mask BCE's gradient is alive.
+FILL_MARGIN = 3.0
 
 
 def make_optimizer(model: NeuSModel, cfg: Config) -> torch.optim.Adam:
@@ -297,7 +300,7 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: 
         terms["carve"] = free_space(out.sdf, inputs.empty, counted, inputs.ray_weight)
     if inputs.full is not None:
         terms["fill"] = missed_rays(out.sdf, inputs.full, counted, out.weight_sum,
-                                    inputs.ray_weight)
+                                    inputs.ray_weight, FILL_MARGIN / out.inv_s.detach())
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
                        eikonal_idx=inputs.eikonal_idx, ray_weight=inputs.ray_weight,
                        foreground=inputs.foreground, terms=terms)

@@ -360,3 +360,32 @@ def test_the_scenes_world_sdf_is_zero_on_its_true_mesh_and_bad_folders_are_named
     (tmp_path / "scene.json").write_text('{"source": "bunny.obj"}')
     with pytest.raises(NeusL0Error, match="not a built-in analytic shape"):
         scene_world_sdf(tmp_path)
+
+
+def test_missed_rays_picks_the_rods_side_pixels_and_reports_each_run(tiny_scene, tiny_trained,
+                                                                    capsys):
+    """Pixels whose first hit lies on a vertical rod's side, in the mask, are the rod's (not its
+    ends, not misses, not off the mask); a run gets one row with that many pixels."""
+    import numpy as np
+
+    tool = _tool("missed_rays")
+    hits = np.full((1, 2, 4, 3), np.nan)
+    hits[0, 0] = [[1.0, 0.0, 5.0], [1.4, 0.0, 5.0], [0.0, 1.0, 0.5], [3.0, 0.0, 5.0]]
+    hits[0, 1] = [[0.0, -1.2, 9.0], [0.0, 0.5, 9.8], [0.0, 0.0, 5.0], [0.0, 0.0, 5.0]]
+    masks = np.ones((1, 2, 4))
+    masks[0, 1, 3] = 0.0
+    got = tool.rod_pixels(hits, masks, (0.0, 0.0), 1.0, (0.0, 10.0))
+    assert got.tolist() == [[0, 0, 0], [0, 0, 1], [0, 1, 0], [0, 1, 2]]
+    # the tiny scene's body as one wide "rod" around its vertical axis
+    from neus_l0.synthetic.scene import WORLD_OFFSET
+
+    axis = f"{WORLD_OFFSET[0]},{WORLD_OFFSET[1]}"
+    assert tool.main([str(tiny_scene), str(tiny_trained), "--axis", axis, "--radius", "80",
+                      "--z=-100,200", "--threads", "1"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    n = int(out[0].split()[0])
+    row = out[3].split("|")
+    assert n > 0 and int(row[3]) == n and 0.0 <= float(row[4]) <= 1.0
+    with pytest.raises(SystemExit, match="--axis"):
+        tool.main([str(tiny_scene), str(tiny_trained), "--axis", "1", "--radius", "1",
+                   "--z", "0,1"])

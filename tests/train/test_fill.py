@@ -16,30 +16,31 @@ from neus_l0.train.losses import LOSS_NAMES, mask_bce, missed_rays
 from neus_l0.train.step import draw_step_inputs, render_and_loss
 
 
-def reference(sdf, full, inside, opacity, weight):
-    """A plain float64 loop: per ray in the mask that renders under 0.5, how far above 0 its
-    shallowest counted sample stays."""
+def reference(sdf, full, inside, opacity, weight, margin=0.0):
+    """A plain float64 loop: per ray in the mask that renders under 0.5, how far above
+    `margin` its shallowest counted sample stays."""
     total = 0.0
     for b in range(sdf.shape[0]):
         if full[b] == 0 or float(opacity[b, 0]) >= 0.5:
             continue
         counted = [float(sdf[b, n]) for n in range(sdf.shape[1]) if inside[b, n] > 0]
         if counted:
-            total += float(weight[b]) * max(0.0, min(counted))
+            total += float(weight[b]) * max(0.0, min(counted) - margin)
     return total / sdf.shape[0]
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.integers(0, 2**31 - 1), st.integers(1, 12), st.integers(1, 9), st.booleans())
-def test_it_matches_a_plain_loop(seed, b, n, weighted):
+@given(st.integers(0, 2**31 - 1), st.integers(1, 12), st.integers(1, 9), st.booleans(),
+       st.sampled_from([0.0, 0.3]))
+def test_it_matches_a_plain_loop(seed, b, n, weighted, margin):
     g = torch.Generator().manual_seed(seed)
     sdf = torch.randn(b, n, generator=g, dtype=torch.float64)
     full = (torch.rand(b, generator=g) < 0.6).double()
     inside = (torch.rand(b, n, generator=g) < 0.7).double()
     opacity = torch.rand(b, 1, generator=g, dtype=torch.float64)
     weight = torch.rand(b, generator=g, dtype=torch.float64) * 3 if weighted else None
-    got = missed_rays(sdf, full, inside, opacity, weight)
-    want = reference(sdf, full, inside, opacity, weight if weighted else torch.ones(b))
+    got = missed_rays(sdf, full, inside, opacity, weight, torch.tensor(margin, dtype=torch.float64))
+    want = reference(sdf, full, inside, opacity, weight if weighted else torch.ones(b), margin)
     assert got.item() == pytest.approx(want, rel=1e-12, abs=1e-15)
 
 
@@ -83,6 +84,16 @@ def test_the_gradient_reaches_only_each_missed_rays_shallowest_counted_sample():
     want = torch.zeros(5, 4)
     want[0, 1] = want[3, 1] = 1.0 / 5
     torch.testing.assert_close(sdf.grad, want)
+
+
+def test_a_ray_within_the_margin_is_left_to_the_mask_bce():
+    """Shallowest samples 0.1 and 0.5 above the surface, margin 0.3: only the second counts,
+    by 0.2, and only its shallowest sample gets a gradient."""
+    sdf = torch.tensor([[0.4, 0.1, 0.2], [0.9, 0.5, 0.7]], requires_grad=True)
+    loss = missed_rays(sdf, torch.ones(2), torch.ones(2, 3), torch.zeros(2, 1), margin=0.3)
+    assert loss.item() == pytest.approx(0.2 / 2)
+    loss.backward()
+    torch.testing.assert_close(sdf.grad, torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.5, 0.0]]))
 
 
 def test_filling_grows_a_too_small_sphere_to_the_silhouette():
