@@ -106,8 +106,13 @@ def main(argv: list[str] | None = None) -> int:
     net = make_model(cfg).sdf
     if hasattr(net.encoding, "steps"):
         net.encoding.steps.fill_(10**9)  # every level of a progressive grid on
-    points = torch.as_tensor((np.asarray(trimesh.load(gt).vertices) - center) / radius,
-                             dtype=torch.float32)
+    try:
+        vertices = np.asarray(trimesh.load(gt).vertices, dtype=np.float64)
+    except Exception as exc:  # trimesh raises many kinds on a damaged file
+        raise SystemExit(f"{gt}: unreadable ({exc})") from None
+    if vertices.ndim != 2 or len(vertices) == 0:
+        raise SystemExit(f"{gt}: no points")
+    points = torch.as_tensor((vertices - center) / radius, dtype=torch.float32)
     c = torch.as_tensor(center)
 
     def sdf_norm(x: torch.Tensor) -> torch.Tensor:

@@ -585,10 +585,6 @@ def builtin_names() -> list[str]:
     return list(BUILTIN_SHAPES)
 
 
-__all__ = ["make_scene", "builtin_names", "BuiltinShape", "check_scene_args", "check_render_memory",
-           "render_bytes"]
-
-
 def scene_world_sdf(scene_dir: str | Path) -> tuple[Translated, str]:
     """(the exact SDF in world units, the shape's name) of a scene that `neus-l0 synth` made
     from a built-in analytic shape (its ``scene.json``'s ``source``).
@@ -607,3 +603,8 @@ def scene_world_sdf(scene_dir: str | Path) -> tuple[Translated, str]:
         raise NeusL0Error(f"{path}: source {name!r} is not a built-in analytic shape "
                           f"({', '.join(sorted(BUILTIN_SHAPES))})")
     return Translated(builtin_shape(name).sdf, WORLD_OFFSET), name
+
+
+__all__ = ["make_scene", "builtin_names", "BuiltinShape", "check_scene_args", "check_render_memory",
+           "render_bytes", "scene_world_sdf"]
+

@@ -295,7 +295,8 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: 
                                                   inputs.curvature_idx)
     if inputs.photo is not None:
         terms["photo"] = photo_at_rays(model, inputs, out, cfg)
-    counted = out.inside_sphere * out.active[:, None].to(out.inside_sphere.dtype)
+    if inputs.empty is not None or inputs.full is not None:
+        counted = out.inside_sphere * out.active[:, None].to(out.inside_sphere.dtype)
     if inputs.empty is not None:
         terms["carve"] = free_space(out.sdf, inputs.empty, counted, inputs.ray_weight)
     if inputs.full is not None:

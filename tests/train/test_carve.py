@@ -9,9 +9,8 @@ from hypothesis import strategies as st
 from neus_l0.config.load import load_config
 from neus_l0.errors import ConfigError
 from neus_l0.fields.model import make_model
-from neus_l0.sampling.upsample import build_sampler
-from neus_l0.train.losses import LOSS_NAMES, free_space
-from neus_l0.train.step import draw_step_inputs, render_and_loss
+from neus_l0.train.losses import free_space
+from neus_l0.train.step import draw_step_inputs
 
 
 def reference(sdf, empty, inside, weight):
@@ -91,28 +90,22 @@ def test_carving_shrinks_a_too_large_sphere_to_the_silhouette():
     assert nearest_empty - 0.02 < r.item() <= nearest_empty + 1e-9
 
 
-def test_the_step_with_the_term(small, sphere_scene, tmp_path):
+def test_the_step_with_the_term(small, sphere_scene, tmp_path, step_term):
     """On: the rays whose mask is 0 are marked, the loss holds weight x pool share x term
     and the metric reports it; off: nothing is marked and the metric is 0."""
     scene = sphere_scene(tmp_path / "s")
     base = small + ["train.compile=false", "model.sdf.gradient=analytic",
-                    "train.photo.weight=0"]
-    on = load_config("demo", base + ["train.carve_weight=2.0", "model.sdf.bias=0.9"])
+                    "train.photo.weight=0", "model.sdf.bias=0.9"]
+    on = load_config("demo", base + ["train.carve_weight=2.0"])
     torch.manual_seed(0)
     model = make_model(on)  # a sphere of radius 0.9 at the start: larger than the object
-    inputs = draw_step_inputs(scene, on, 3, 64, torch.Generator().manual_seed(0), None)
-    raw_empty = inputs.mask[:, 0] == 0
-    assert inputs.empty is not None and torch.equal(inputs.empty > 0, raw_empty)
-    loss, metrics, _ = render_and_loss(model, inputs, on, build_sampler(on.sampler), ())
-    carve = dict(zip(LOSS_NAMES, metrics.tolist(), strict=False))["carve_loss"]
+    inputs, loss, carve = step_term(model, scene, on, "carve_loss")
+    assert inputs.empty is not None and torch.equal(inputs.empty > 0, inputs.mask[:, 0] == 0)
     assert carve > 0
-    off = load_config("demo", base + ["model.sdf.bias=0.9"])
-    inputs_off = draw_step_inputs(scene, off, 3, 64, torch.Generator().manual_seed(0), None)
-    assert inputs_off.empty is None
-    loss_off, m_off, _ = render_and_loss(model, inputs_off, off, build_sampler(off.sampler), ())
-    assert dict(zip(LOSS_NAMES, m_off.tolist(), strict=False))["carve_loss"] == 0.0
-    assert loss.item() - loss_off.item() == pytest.approx(2.0 * inputs.mask_scale * carve,
-                                                          rel=1e-3, abs=1e-6)
+    inputs_off, loss_off, carve_off = step_term(model, scene, load_config("demo", base),
+                                                "carve_loss")
+    assert inputs_off.empty is None and carve_off == 0.0
+    assert loss - loss_off == pytest.approx(2.0 * inputs.mask_scale * carve, rel=1e-3, abs=1e-6)
 
 
 def test_only_a_mask_of_exactly_0_marks_a_ray(small, sphere_scene, tmp_path):

@@ -12,8 +12,7 @@ from neus_l0.errors import ConfigError
 from neus_l0.fields.model import make_model
 from neus_l0.render.volume import render_rays
 from neus_l0.sampling.upsample import build_sampler
-from neus_l0.train.losses import LOSS_NAMES, mask_bce, missed_rays
-from neus_l0.train.step import draw_step_inputs, render_and_loss
+from neus_l0.train.losses import mask_bce, missed_rays
 
 
 def reference(sdf, full, inside, opacity, weight, margin=0.0):
@@ -147,28 +146,23 @@ def test_the_mask_bce_has_a_dead_zone_the_term_does_not():
     assert any(g is not None and torch.count_nonzero(g) > 0 for g in g_fill)
 
 
-def test_the_step_with_the_term(small, sphere_scene, tmp_path):
+def test_the_step_with_the_term(small, sphere_scene, tmp_path, step_term):
     """On: the rays whose mask is 1 are marked, the loss holds weight x pool share x term
     and the metric reports it; off: nothing is marked and the metric is 0."""
     scene = sphere_scene(tmp_path / "s")
-    base = small + ["train.compile=false", "model.sdf.gradient=analytic",
-                    "train.photo.weight=0"]
     # a sphere of radius 0.1 at the start: smaller than the object, so rays in it miss
-    on = load_config("demo", base + ["train.fill_weight=2.0", "model.sdf.bias=0.1"])
+    base = small + ["train.compile=false", "model.sdf.gradient=analytic",
+                    "train.photo.weight=0", "model.sdf.bias=0.1"]
+    on = load_config("demo", base + ["train.fill_weight=2.0"])
     torch.manual_seed(0)
     model = make_model(on)
-    inputs = draw_step_inputs(scene, on, 3, 64, torch.Generator().manual_seed(0), None)
+    inputs, loss, fill = step_term(model, scene, on, "fill_loss")
     assert inputs.full is not None and torch.equal(inputs.full > 0, inputs.mask[:, 0] > 0.5)
-    loss, metrics, _ = render_and_loss(model, inputs, on, build_sampler(on.sampler), ())
-    fill = dict(zip(LOSS_NAMES, metrics.tolist(), strict=False))["fill_loss"]
     assert fill > 0
-    off = load_config("demo", base + ["model.sdf.bias=0.1"])
-    inputs_off = draw_step_inputs(scene, off, 3, 64, torch.Generator().manual_seed(0), None)
-    assert inputs_off.full is None
-    loss_off, m_off, _ = render_and_loss(model, inputs_off, off, build_sampler(off.sampler), ())
-    assert dict(zip(LOSS_NAMES, m_off.tolist(), strict=False))["fill_loss"] == 0.0
-    assert loss.item() - loss_off.item() == pytest.approx(2.0 * inputs.mask_scale * fill,
-                                                          rel=1e-3, abs=1e-6)
+    inputs_off, loss_off, fill_off = step_term(model, scene, load_config("demo", base),
+                                               "fill_loss")
+    assert inputs_off.full is None and fill_off == 0.0
+    assert loss - loss_off == pytest.approx(2.0 * inputs.mask_scale * fill, rel=1e-3, abs=1e-6)
 
 
 def test_range():

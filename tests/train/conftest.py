@@ -1,0 +1,21 @@
+"""Fixtures of the training tests."""
+
+import pytest
+import torch
+
+from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train.losses import LOSS_NAMES
+from neus_l0.train.step import draw_step_inputs, render_and_loss
+
+
+@pytest.fixture
+def step_term():
+    """A function (model, scene, cfg, name) -> (the step's inputs, its loss, its metric
+    `name`): one step's rays drawn from seed 0 at iteration 3, rendered and scored."""
+
+    def run(model, scene, cfg, name):
+        inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), None)
+        loss, metrics, _ = render_and_loss(model, inputs, cfg, build_sampler(cfg.sampler), ())
+        return inputs, loss.item(), dict(zip(LOSS_NAMES, metrics.tolist(), strict=False))[name]
+
+    return run
