@@ -3,6 +3,7 @@ and on every feature's error, with the exact sign test.
 
 Usage:
     python tools/pair_features.py OFF_DIR[,OFF_DIR2] ON_DIR[,ON_DIR2] [--metric overall|...]
+        [--eval NAME]
 
 Both sweeps ran the same scenes, samplers, budgets and seeds (so their run folders share
 names, ``OFF_DIR/runs/NAME`` against ``ON_DIR/runs/NAME``) and differ in one setting, e.g.
@@ -14,6 +15,11 @@ and feature (and ``total``, ``all pits``, ``all thins``: the pooled kinds, also 
 scene together): the mean error off and on, their ratio, the pairs the remedy
 won (lower error) of those not tied, and the two-sided sign test's p
 (`neus_l0.evaluation.paired.sign_test_p`).
+
+``--eval NAME`` reads each run's ``runs/RUN/NAME`` instead: the JSON of ``neus-l0 eval
+MESH --scene SCENE --json RUN/NAME`` on the run re-meshed another way (e.g. the demo's mesh
+steps, ``neus-l0 mesh RUN --close-underside --drop-outside-masks``); the scene is named by
+the run's name (``SCENE__SAMPLER__...``).
 """
 
 from __future__ import annotations
@@ -28,10 +34,14 @@ from neus_l0.evaluation.paired import sign_test_p
 
 
 def run_errors(eval_json: Path, metric: str) -> tuple[str, dict[str, float]]:
-    """(scene name, {"total" | feature name: error}) of one run's ``eval.json``."""
+    """(scene name, {"total" | feature name: error}) of one run's ``eval.json`` (a bench
+    run's record, or a `neus-l0 eval --json` report: ``--eval``)."""
     rec = json.loads(eval_json.read_text())
-    chamfer = rec.get("chamfer") or {}
-    scene = Path(rec["spec"]["scene_dir"]).name
+    if "spec" in rec:
+        chamfer = rec.get("chamfer") or {}
+        scene = Path(rec["spec"]["scene_dir"]).name
+    else:
+        chamfer, scene = rec, eval_json.parent.name.split("__")[0]
     out = {"total": chamfer.get(metric, math.nan)}
     feats = chamfer.get("features") or {}
     for f in feats.get("each", []):
@@ -41,11 +51,12 @@ def run_errors(eval_json: Path, metric: str) -> tuple[str, dict[str, float]]:
     return scene, {k: float(v) if v is not None else math.nan for k, v in out.items()}
 
 
-def run_files(folders: list[Path]) -> dict[str, Path]:
-    """Run name -> its ``eval.json`` over several sweep folders (a name in two is an error)."""
+def run_files(folders: list[Path], report: str = "eval.json") -> dict[str, Path]:
+    """Run name -> its ``eval.json`` (or `report`) over several sweep folders (a name in two
+    is an error)."""
     out: dict[str, Path] = {}
     for folder in folders:
-        for path in sorted(folder.glob("runs/*/eval.json")):
+        for path in sorted(folder.glob(f"runs/*/{report}")):
             name = path.parent.name
             if name in out:
                 raise SystemExit(f"error: run {name} is in both {out[name].parents[2]} and "
@@ -54,10 +65,11 @@ def run_files(folders: list[Path]) -> dict[str, Path]:
     return out
 
 
-def paired_rows(off: Path | list[Path], on: Path | list[Path], metric: str) -> list[dict]:
+def paired_rows(off: Path | list[Path], on: Path | list[Path], metric: str,
+                eval_name: str = "eval.json") -> list[dict]:
     """One row per (scene, feature): means, ratio, wins, n and the sign test's p."""
-    off_runs = run_files(off if isinstance(off, list) else [off])
-    on_runs = run_files(on if isinstance(on, list) else [on])
+    off_runs = run_files(off if isinstance(off, list) else [off], eval_name)
+    on_runs = run_files(on if isinstance(on, list) else [on], eval_name)
     pairs: dict[tuple[str, str], list[tuple[float, float]]] = defaultdict(list)
     for run, a in sorted(off_runs.items()):
         b = on_runs.get(run)
@@ -88,9 +100,12 @@ def main() -> None:
     ap.add_argument("on", help="the sweep(s) with the remedy on, comma-separated")
     ap.add_argument("--metric", default="overall",
                     choices=("overall", "completeness", "accuracy"))
+    ap.add_argument("--eval", default="eval.json", dest="eval_name",
+                    help="each run's report to read: a `neus-l0 eval --json` file in the run "
+                         "folder (default: the bench's eval.json)")
     args = ap.parse_args()
     rows = paired_rows([Path(f) for f in args.off.split(",") if f],
-                       [Path(f) for f in args.on.split(",") if f], args.metric)
+                       [Path(f) for f in args.on.split(",") if f], args.metric, args.eval_name)
     print("| scene | feature | pairs | off | on | on/off | remedy wins | sign test p |")
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:

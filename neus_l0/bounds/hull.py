@@ -382,7 +382,7 @@ def _ray_points(origins: Tensor, dirs: Tensor, near: Tensor, far: Tensor,
     return t, pts, (disc >= 0) & (hi >= lo)
 
 
-def _background_distance(mask: Tensor) -> Tensor:
+def background_distance(mask: Tensor) -> Tensor:
     """(H, W) int16: distance from each pixel centre to the nearest foreground pixel centre.
 
     Rounded down to whole pixels and capped at 32767 (both conservative); foreground is
@@ -417,7 +417,7 @@ def _carve_counts(centres: Tensor, radius: float, dists: list[Tensor], intrinsic
 
     Args:
         centres: (N, 3) cell centres; radius: their bounding-ball radius.
-        dists: per view, the (H, W) `_background_distance` of its mask.
+        dists: per view, the (H, W) `background_distance` of its mask.
         intrinsics (V, 3, 3); c2w (V, 4, 4); views: the carving views.
         prior: (count (N,), carver (N,)) already proved (by an enclosing coarse cell):
             those views are not counted twice.
@@ -626,7 +626,7 @@ def carve_hull(masks: Tensor, intrinsics: Tensor, c2w: Tensor,
     status = [("empty" if c == 0.0 else st) if has_masks else "no masks"
               for c, st in zip(cover, status, strict=True)]
     carving = [v for v in range(V) if status[v] in ("ok", "full")]
-    dists = [_background_distance(masks[v]).to(dev) if v in carving else None
+    dists = [background_distance(masks[v]).to(dev) if v in carving else None
              for v in range(V)]
     rays = _foreground_rays(masks, intrinsics, c2w, samples) if carving else None
     cuts = [0.0] * V

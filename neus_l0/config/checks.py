@@ -125,6 +125,8 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "mask_weight"): at_least(0),
     (TrainConfig, "carve_weight"): at_least(0, "0: off"),
     (TrainConfig, "fill_weight"): at_least(0, "0: off"),
+    (TrainConfig, "fill_margin"): Range(-5, 10, note="in 1/s; 0: until the ray hits"),
+    (TrainConfig, "fill_span"): Range(0, 2, note="0: every ray"),
     (TrainConfig, "hit_color_floor"): Range(0, 1, note="0: off (NeuS's composite over black)"),
     (TrainConfig, "seed"): at_least(0),
     (TrainConfig, "log_every"): at_least(1),

@@ -464,7 +464,20 @@ class TrainConfig:
     sample stays (0: off; needs the masks, `mask_weight` > 0). The mask BCE gives such a ray
     no gradient once it passes a few 1/s from every surface (its clip at 1e-3), so a thin
     part that did not form early never forms; this term's gradient does not fade. It lets go
-    at 3/s (`neus_l0.train.step.FILL_MARGIN`), where the BCE takes over."""
+    at `fill_margin` / s."""
+    fill_margin: float = 3.0
+    """Silhouette filling lets go of a ray once its shallowest counted sample lies within
+    this many 1/s of the surface (3: where the mask BCE's gradient is alive again and takes
+    over; 0: only once the ray crosses the surface)."""
+    fill_silhouettes: bool = False
+    """Silhouette filling counts only the samples inside every view's mask (the visual hull
+    at pixel resolution, `neus_l0.bounds.silhouettes`, widened by `hull.margin_px`), so it
+    pushes at the thin part a ray sees instead of the nearest other surface along it."""
+    fill_span: float = 0.0
+    """With `fill_silhouettes`: push only the rays whose samples inside every view's mask lie
+    within this length of each other (normalised units; the object fits the unit sphere):
+    a ray that sees a thin part against the background crosses the masks' intersection in a
+    short segment, one into a pit or along a wall in a long one (0: every ray)."""
     seed: int = 0
     """Seed of the network initialisation and of the ray / sample generator."""
     log_every: int = 100

@@ -29,6 +29,7 @@ from torch import Tensor
 
 from neus_l0.atomic import atomic_write_json, atomic_write_text, remove_orphans
 from neus_l0.bounds.pixel_pool import reachable_pixels, with_error_map
+from neus_l0.bounds.silhouettes import Silhouettes
 from neus_l0.bounds.static import cameras_inside_warning, static_bounds
 from neus_l0.config.load import dump_config, load_config
 from neus_l0.config.schema import Config
@@ -234,6 +235,8 @@ def _static_setup(scene: Scene, cfg: Config, run_dir: Path) -> StepSetup:
     elif ph.weight > 0:
         setup.photo = PhotoContext.from_scene(scene, ph.sources, ph.patch, ph.stride, ph.best,
                                               ph.normal_sources)
+    if cfg.train.fill_weight > 0 and cfg.train.fill_silhouettes and scene.has_masks:
+        setup.silhouettes = Silhouettes.from_scene(scene, cfg.render.hull.margin_px)
     return setup
 
 

@@ -170,7 +170,7 @@ def test_coarse_to_fine_matches_the_plain_carving():
     from neus_l0.bounds import hull as H
 
     masks, K, c2w = _sphere_scene()
-    dists = [H._background_distance(m) for m in masks]
+    dists = [H.background_distance(m) for m in masks]
     views = list(range(len(masks)))
     idx, count, _ = H._carve(64, dists, K, c2w, views, 1.0, torch.device("cpu"))
     idx2, cent = H._candidates(64, "cpu")

@@ -95,6 +95,26 @@ def test_pairs_join_folders_per_side_and_refuse_a_run_given_twice(tmp_path):
         pf.paired_rows([offa, offa], [ona], "overall")
 
 
+def test_pairs_read_a_re_meshed_report_by_name(tmp_path):
+    """``--eval NAME``: each run's `neus-l0 eval --json` report (no spec; the scene from the
+    run's name) instead of the bench's eval.json."""
+    pf = _tool("pair_features")
+    off, on = tmp_path / "off", tmp_path / "on"
+    for seed, (a, b) in enumerate(((1.0, 0.5), (2.0, 1.0))):
+        for folder, value in ((off, a), (on, b)):
+            run = _run(folder, "pits", 300, seed, 9.0, pit=9.0)
+            (run / "eval_cu.json").write_text(json.dumps({
+                "overall": value, "accuracy": value, "completeness": value,
+                "features": {"by_kind": {"pit": {"overall": value * 2}}, "each": []}}))
+    rows = {(r["scene"], r["feature"]): r
+            for r in pf.paired_rows([off], [on], "overall", "eval_cu.json")}
+    assert rows[("pits", "total")]["on/off"] == pytest.approx(0.5)
+    assert rows[("pits", "all pits")]["wins"] == "2/2"
+    assert rows[("pits", "total")]["pairs"] == 2
+    # the bench's own reports are still the default
+    assert pf.paired_rows([off], [on], "overall")[0]["on/off"] == pytest.approx(1.0)
+
+
 def test_the_exact_model_is_the_scenes_surface(tiny_scene):
     """The ground-truth points (world units, projected onto the true surface) lie on the
     stand-in's zero level set once taken to the normalised frame."""

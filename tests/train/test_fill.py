@@ -12,7 +12,9 @@ from neus_l0.errors import ConfigError
 from neus_l0.fields.model import make_model
 from neus_l0.render.volume import render_rays
 from neus_l0.sampling.upsample import build_sampler
+from neus_l0.train import step
 from neus_l0.train.losses import mask_bce, missed_rays
+from neus_l0.train.step import silhouette_samples
 
 
 def reference(sdf, full, inside, opacity, weight, margin=0.0):
@@ -165,9 +167,81 @@ def test_the_step_with_the_term(small, sphere_scene, tmp_path, step_term):
     assert loss - loss_off == pytest.approx(2.0 * inputs.mask_scale * fill, rel=1e-3, abs=1e-6)
 
 
+def test_the_step_counts_only_samples_inside_the_silhouettes(small, sphere_scene, tmp_path,
+                                                              step_term, monkeypatch):
+    """`train.fill_silhouettes`: the term reads the shallowest sample among those inside
+    every view's mask, so it is at least the plain term (a minimum over fewer samples), its
+    gradient reaches only such samples, and a margin of 0 pushes further than 3/s."""
+    scene = sphere_scene(tmp_path / "s")
+    base = small + ["train.compile=false", "model.sdf.gradient=analytic",
+                    "train.photo.weight=0", "model.sdf.bias=0.1", "train.fill_weight=1.0"]
+    torch.manual_seed(0)
+    model = make_model(load_config("demo", base))
+    plain_in, _, plain = step_term(model, scene, load_config("demo", base), "fill_loss")
+    on = load_config("demo", base + ["train.fill_silhouettes=true"])
+    inputs, _, fill = step_term(model, scene, on, "fill_loss")
+    assert plain_in.silhouettes is None and inputs.silhouettes is not None
+    assert fill > 0 and fill >= plain - 1e-9
+    _, _, deeper = step_term(model, scene, load_config("demo", base + [
+        "train.fill_silhouettes=true", "train.fill_margin=0"]), "fill_loss")
+    assert deeper > fill
+    # the samples it may read: none outside the silhouettes is the shallowest it takes
+    out = render_rays(model, inputs.origins, inputs.dirs, on.render, build_sampler(on.sampler),
+                      create_graph=True, noise=inputs.noise)
+    inside = silhouette_samples(inputs, out)
+    assert 0 < inside.sum() < inside.numel()
+    # only missed rays in the mask are tested, at most FILL_RAYS of them
+    missed = (inputs.full > 0) & (out.weight_sum[:, 0].detach() < 0.5)
+    assert not ((inside.sum(dim=1) > 0) & ~missed).any()
+    # `fill_span`: a plain loop over the rays keeps those whose inside samples lie within
+    # the span (the median extent here, so that some are kept and some dropped)
+    t = out.t_mid.detach()
+    extent = {b: float(t[b][inside[b] > 0].max() - t[b][inside[b] > 0].min())
+              for b in range(t.shape[0]) if inside[b].any()}
+    span = sorted(extent.values())[len(extent) // 2]
+    short = silhouette_samples(inputs, out, span)
+    kept = {b for b in range(t.shape[0]) if short[b].any()}
+    assert kept == {b for b, e in extent.items() if e <= span}
+    assert 0 < len(kept) < len(extent)
+    assert all(torch.equal(short[b], inside[b]) for b in kept)
+    monkeypatch.setattr(step, "FILL_RAYS", 4)
+    rows = silhouette_samples(inputs, out).sum(dim=1) > 0
+    assert missed.sum() > 4 and 0 < rows.sum() <= 4 and not (rows & ~missed).any()
+    counted = out.inside_sphere * out.active[:, None].float() * inside
+    g = torch.autograd.grad(missed_rays(out.sdf, inputs.full, counted, out.weight_sum),
+                            out.sdf)[0]
+    assert torch.all(g[inside == 0] == 0) and g.abs().sum() > 0
+
+
 def test_range():
     assert load_config("demo").train.fill_weight >= 0.0
     with pytest.raises(ConfigError, match="fill_weight"):
         load_config("demo", ["train.fill_weight=-1"])
     with pytest.raises(ConfigError, match="fill_weight.*mask_weight"):
         load_config("demo", ["train.fill_weight=1", "train.mask_weight=0"])
+    with pytest.raises(ConfigError, match="fill_margin"):
+        load_config("demo", ["train.fill_margin=-6"])
+    with pytest.raises(ConfigError, match="fill_span"):
+        load_config("demo", ["train.fill_span=-0.1"])
+
+
+def test_a_run_builds_the_point_test_only_when_filling_asks(small, sphere_scene, tmp_path):
+    """`build_run_state`: the views' silhouettes exist when `fill_silhouettes` is on with
+    filling on, and not otherwise."""
+    from neus_l0.train.loop import build_run_state
+
+    scene = sphere_scene(tmp_path / "s")
+    base = small + ["train.compile=false", "train.photo.weight=0"]
+    cases = ((["train.fill_weight=1", "train.fill_silhouettes=true"], scene, True),
+             (["train.fill_silhouettes=true"], scene, False),
+             (["train.fill_weight=1"], scene, False))
+    for i, (extra, sc, built) in enumerate(cases):
+        run = build_run_state(sc, load_config("demo", base + extra), tmp_path / f"r{i}",
+                              torch.device("cpu"), resume=False)
+        assert (run.setup.silhouettes is not None) == built
+        if built:
+            sil = run.setup.silhouettes
+            assert sil.covered.numel() == scene.n_views * scene.height * scene.width
+            # every foreground pixel is covered, and the margin widens the masks
+            assert bool(sil.covered.reshape(scene.masks.shape)[scene.masks > 0].all())
+            assert sil.covered.sum() > (scene.masks > 0).sum()
