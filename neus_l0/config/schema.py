@@ -478,6 +478,10 @@ class TrainConfig:
     within this length of each other (normalised units; the object fits the unit sphere):
     a ray that sees a thin part against the background crosses the masks' intersection in a
     short segment, one into a pit or along a wall in a long one (0: every ray)."""
+    fill_middle: bool = False
+    """With `fill_silhouettes`: push the sample nearest the middle of a ray's samples inside
+    every mask instead of the shallowest of them (which lies next to the surface that is
+    already there: beside a plate, the masks' intersection is a wedge around it)."""
     seed: int = 0
     """Seed of the network initialisation and of the ray / sample generator."""
     log_every: int = 100

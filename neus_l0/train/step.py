@@ -263,7 +263,8 @@ def curvature_at_samples(model: NeuSModel, origins: Tensor, dirs: Tensor, out: R
     return curvature(lap, out.eikonal_mask.reshape(-1)[idx])
 
 
-def silhouette_samples(inputs: StepInputs, out: RenderOutput, span: float = 0.0) -> Tensor:
+def silhouette_samples(inputs: StepInputs, out: RenderOutput, span: float = 0.0,
+                       middle: bool = False) -> Tensor:
     """(B, N) 1 on the samples (section midpoints) inside every view's mask
     (`neus_l0.bounds.silhouettes.in_silhouettes`) of at most `FILL_RAYS` rays whose mask is 1
     and that render below 0.5 (the rays filling pushes), 0 elsewhere; needs
@@ -273,18 +274,25 @@ def silhouette_samples(inputs: StepInputs, out: RenderOutput, span: float = 0.0)
     `span` > 0 keeps only the rays whose inside samples lie within `span` of each other
     along the ray (normalised units): a ray that sees a thin part against the background
     crosses the silhouettes' intersection in a short segment, one into a pit or along a
-    wall in a long one (`train.fill_span`)."""
+    wall in a long one (`train.fill_span`). `middle` keeps, per ray, only the inside sample
+    nearest the middle of the inside ones (`train.fill_middle`)."""
     t = out.t_mid.detach()
     missed = inputs.full * (out.weight_sum.detach()[:, 0] < 0.5).to(t.dtype)  # (B,)
     idx = torch.topk(missed, min(FILL_RAYS, t.shape[0])).indices  # (k,)
     pts = inputs.origins[idx, None, :] + inputs.dirs[idx, None, :] * t[idx, :, None]
     inside = in_silhouettes(pts.reshape(-1, 3), inputs.silhouettes).reshape(idx.shape[0], -1)
     keep = missed[idx]  # (k,) a batch with fewer missed rays than k
+    ti = t[idx]
+    far = torch.full_like(ti, float("inf"))
+    lo = torch.where(inside, ti, far).amin(dim=1)  # (k,)
+    hi = torch.where(inside, ti, -far).amax(dim=1)
     if span > 0:
-        ti = t[idx]
-        lo = torch.where(inside, ti, torch.full_like(ti, float("inf"))).amin(dim=1)
-        hi = torch.where(inside, ti, torch.full_like(ti, float("-inf"))).amax(dim=1)
         keep = keep * ((hi - lo) <= span).to(t.dtype)
+    if middle:
+        mid = torch.where(hi >= lo, 0.5 * (lo + hi), torch.zeros_like(lo))  # no inf - inf
+        at = torch.where(inside, (ti - mid[:, None]).abs(), far).argmin(dim=1)
+        one = torch.zeros_like(inside).scatter(1, at[:, None], True)
+        inside = one & inside.any(dim=1, keepdim=True)
     return torch.zeros_like(t).index_copy(0, idx, inside.to(t.dtype) * keep[:, None])
 
 
@@ -333,7 +341,8 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: 
         terms["carve"] = free_space(out.sdf, inputs.empty, counted, inputs.ray_weight)
     if inputs.full is not None:
         if inputs.silhouettes is not None:
-            counted = counted * silhouette_samples(inputs, out, cfg.train.fill_span)
+            counted = counted * silhouette_samples(inputs, out, cfg.train.fill_span,
+                                                   cfg.train.fill_middle)
         terms["fill"] = missed_rays(out.sdf, inputs.full, counted, out.weight_sum,
                                     inputs.ray_weight, cfg.train.fill_margin / out.inv_s.detach())
     losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,

@@ -204,6 +204,16 @@ def test_the_step_counts_only_samples_inside_the_silhouettes(small, sphere_scene
     assert kept == {b for b, e in extent.items() if e <= span}
     assert 0 < len(kept) < len(extent)
     assert all(torch.equal(short[b], inside[b]) for b in kept)
+    # `fill_middle`: per ray, the one inside sample nearest the middle of the inside ones
+    mid = silhouette_samples(inputs, out, 0.0, True)
+    for b in range(t.shape[0]):
+        if b not in extent:
+            assert not mid[b].any()
+            continue
+        ts = t[b][inside[b] > 0]
+        centre = 0.5 * float(ts.min() + ts.max())
+        want = min(range(len(ts)), key=lambda i: abs(float(ts[i]) - centre))
+        assert mid[b].sum() == 1 and float(t[b][mid[b] > 0][0]) == float(ts[want])
     monkeypatch.setattr(step, "FILL_RAYS", 4)
     rows = silhouette_samples(inputs, out).sum(dim=1) > 0
     assert missed.sum() > 4 and 0 < rows.sum() <= 4 and not (rows & ~missed).any()
