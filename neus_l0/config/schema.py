@@ -472,7 +472,10 @@ class TrainConfig:
     fill_silhouettes: bool = False
     """Silhouette filling counts only the samples inside every view's mask (the visual hull
     at pixel resolution, `neus_l0.bounds.silhouettes`, widened by `hull.margin_px`), so it
-    pushes at the thin part a ray sees instead of the nearest other surface along it."""
+    pushes at the thin part a ray sees instead of the nearest other surface along it. Off:
+    with `fill_margin` 0 it formed the r1 rod of `pits-deep` in 3 of 8 pairs, but lowered the
+    pits in none and grows the unseen cone under the base (docs/BENCHMARKS.md, "Where does
+    the error live")."""
     fill_span: float = 0.0
     """With `fill_silhouettes`: push only the rays whose samples inside every view's mask lie
     within this length of each other (normalised units; the object fits the unit sphere):
