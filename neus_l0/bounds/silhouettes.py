@@ -18,11 +18,15 @@ samples, 0.5-2 world units from its axis), while the grid hull's span is 18-72 u
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from neus_l0.bounds.hull import background_distance
+
+if TYPE_CHECKING:
+    from neus_l0.data.scene import Scene
 
 __all__ = ["Silhouettes", "in_silhouettes"]
 
@@ -46,7 +50,7 @@ class Silhouettes:
     centres: Tensor
 
     @classmethod
-    def from_scene(cls, scene, margin_px: float) -> Silhouettes:
+    def from_scene(cls, scene: Scene, margin_px: float) -> Silhouettes:
         """The silhouettes of a scene's views (`neus_l0.data.scene.Scene` with masks)."""
         cover = []
         for v in range(scene.n_views):

@@ -244,6 +244,13 @@ def _check_train(obj: TrainConfig, bad: Callable[[str, str], ConfigError]) -> No
     if obj.fill_weight > 0 and obj.mask_weight <= 0:
         raise bad("fill_weight", f"{obj.fill_weight}: filling reads the masks; it needs "
                   "train.mask_weight > 0")
+    if obj.fill_silhouettes and obj.fill_weight <= 0:
+        raise bad("fill_silhouettes", "true: it narrows silhouette filling; it needs "
+                  "train.fill_weight > 0")
+    if (obj.fill_span > 0 or obj.fill_middle) and not obj.fill_silhouettes:
+        raise bad("fill_span" if obj.fill_span > 0 else "fill_middle",
+                  "it reads the samples inside every mask; it needs "
+                  "train.fill_silhouettes=true")
 
 
 #: The rules that tie several keys of one config class together.

@@ -607,4 +607,3 @@ def scene_world_sdf(scene_dir: str | Path) -> tuple[Translated, str]:
 
 __all__ = ["make_scene", "builtin_names", "BuiltinShape", "check_scene_args", "check_render_memory",
            "render_bytes", "scene_world_sdf"]
-

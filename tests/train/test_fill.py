@@ -233,17 +233,24 @@ def test_range():
         load_config("demo", ["train.fill_margin=-6"])
     with pytest.raises(ConfigError, match="fill_span"):
         load_config("demo", ["train.fill_span=-0.1"])
+    # the narrowing keys say what they need instead of doing nothing
+    with pytest.raises(ConfigError, match="fill_silhouettes.*fill_weight"):
+        load_config("demo", ["train.fill_silhouettes=true"])
+    for key in ("train.fill_span=0.1", "train.fill_middle=true"):
+        with pytest.raises(ConfigError, match="fill_silhouettes=true"):
+            load_config("demo", ["train.fill_weight=1", key])
+    load_config("demo", ["train.fill_weight=1", "train.fill_silhouettes=true",
+                         "train.fill_span=0.1", "train.fill_middle=true"])
 
 
 def test_a_run_builds_the_point_test_only_when_filling_asks(small, sphere_scene, tmp_path):
     """`build_run_state`: the views' silhouettes exist when `fill_silhouettes` is on with
-    filling on, and not otherwise."""
+    filling on (not with filling alone)."""
     from neus_l0.train.loop import build_run_state
 
     scene = sphere_scene(tmp_path / "s")
     base = small + ["train.compile=false", "train.photo.weight=0"]
     cases = ((["train.fill_weight=1", "train.fill_silhouettes=true"], scene, True),
-             (["train.fill_silhouettes=true"], scene, False),
              (["train.fill_weight=1"], scene, False))
     for i, (extra, sc, built) in enumerate(cases):
         run = build_run_state(sc, load_config("demo", base + extra), tmp_path / f"r{i}",
