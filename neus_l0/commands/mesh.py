@@ -107,7 +107,8 @@ def run(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     use_threads(args.threads, device)
     t0 = time.monotonic()
-    steps = MeshSteps(args.close_underside, args.drop_outside_masks, args.inset)
+    steps = MeshSteps(args.close_underside, args.drop_outside_masks, args.inset,
+                      args.fill_missed)
     made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
                          progress=not args.quiet, steps=steps)
     mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat

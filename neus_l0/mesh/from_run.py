@@ -22,6 +22,7 @@ from neus_l0.fields.model import NeuSModel
 from neus_l0.mesh.extract import extract_mesh, progress_bars
 from neus_l0.mesh.inset import inset
 from neus_l0.mesh.mask_outliers import mask_outliers
+from neus_l0.mesh.missed_parts import missed_solid, with_solid
 from neus_l0.mesh.underside import cut_below, underside_line, underside_plane
 from neus_l0.run.checkpoints import load_trained_model
 
@@ -37,11 +38,14 @@ class MeshSteps:
         drop_outside_masks: drop the connected pieces that a training view sees outside its
             mask (`neus_l0.mesh.mask_outliers`); reads the masks.
         inset: K >= 0: extract the level ``-K / s`` instead of 0 (`neus_l0.mesh.inset`).
+        fill_missed: add the visual hull's points on the pixels a mask sees and the first
+            mesh misses (`neus_l0.mesh.missed_parts`), then extract again; reads the masks.
     """
 
     close_underside: bool = False
     drop_outside_masks: bool = False
     inset: float = 0.0
+    fill_missed: bool = False
 
     def __post_init__(self):
         if not 0 <= self.inset < float("inf"):
@@ -50,7 +54,7 @@ class MeshSteps:
     @property
     def needs_masks(self) -> bool:
         """Whether a step reads the run's scene and masks."""
-        return self.close_underside or self.drop_outside_masks
+        return self.close_underside or self.drop_outside_masks or self.fill_missed
 
 
 @dataclasses.dataclass
@@ -107,9 +111,15 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         mesh = extract_mesh(field, scale_mat, resolution=resolution, clean=clean,
                             device=device, method=method, hull=hull)
         plane = underside_plane(mesh, *views) if steps.close_underside else None
-        if plane is not None:
-            cut = cut_below(field, *plane_to_normalised(plane, scale_mat))
-            mesh = extract_mesh(cut, scale_mat, resolution=resolution, clean=clean,
+        solid, filled = None, None
+        if steps.fill_missed:
+            solid, filled = missed_solid(mesh, *views, scale_mat,
+                                         None if hull is None else hull.contains, resolution)
+        if plane is not None or solid is not None:
+            again = field if solid is None else with_solid(field, solid)
+            if plane is not None:
+                again = cut_below(again, *plane_to_normalised(plane, scale_mat))
+            mesh = extract_mesh(again, scale_mat, resolution=resolution, clean=clean,
                                 device=device, method=method, hull=hull)
     meta = dict(mesh.metadata)
     if steps.inset:
@@ -118,6 +128,8 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
     if steps.close_underside:
         meta["underside_plane"] = (None if plane is None else
                                    {"up": plane[0].tolist(), "height": plane[1]})
+    if steps.fill_missed:
+        meta["filled_missed"] = filled
     if steps.drop_outside_masks:
         mesh, meta["dropped_outside_masks"] = mask_outliers(mesh, *views)
     mesh.metadata.update(meta)
@@ -177,6 +189,12 @@ def steps_report(metadata: dict) -> list[str]:
                      f"{ins['world']:.3f} world units inside the zero level")
     if "underside_plane" in metadata:
         lines.append(underside_line(metadata["underside_plane"]))
+    if "filled_missed" in metadata:
+        f = metadata["filled_missed"]
+        lines.append(f"missed parts: {f['missed_pixels']} missed mask pixels, "
+                     + ("nothing filled" if not f["points"] else
+                        f"{f['points']} grid points filled in {f['pieces']} piece(s) "
+                        f"(grid {f['grid']}^3)"))
     if "dropped_outside_masks" in metadata:
         dropped = metadata["dropped_outside_masks"]
         lines.append("outside the masks: nothing dropped" if not dropped else

@@ -34,11 +34,7 @@ from scipy.ndimage import minimum_filter
 
 from neus_l0.data.cameras import decompose_projection, depth_projection, pixel_indices
 from neus_l0.errors import NeusL0Error
-
-SAMPLES_PER_PIXEL = 4.0
-"""Surface samples per pixel footprint in the z-buffer (the finest footprint over the views,
-at the mesh's centre)."""
-
+from neus_l0.mesh.raster import foot_ratio, surface_samples
 
 UPRIGHT_SPREAD = 0.02
 """Largest mean squared up-component of the cameras' x axes for a rig to count as upright
@@ -91,11 +87,7 @@ def seen_counts(mesh: trimesh.Trimesh, projections: np.ndarray,
     """
     P_n = depth_projection(np.asarray(projections, dtype=np.float64))  # camera-z depth rows
     verts = np.asarray(mesh.vertices, dtype=np.float64)
-    # the finest pixel footprint over the views, at the mesh's centre
-    foot = min(abs(float(P_n[v][2] @ np.r_[verts.mean(0), 1.0])) * foot_ratio(projections[v])
-               for v in range(len(P_n)))
-    n = int(min(2e6, max(1e4, SAMPLES_PER_PIXEL * mesh.area / foot**2)))
-    samples, _ = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    samples = surface_samples(mesh, projections, seed=seed)
     counts = np.zeros(len(verts), dtype=np.int64)
     for v, mask in enumerate(masks):
         h, w = mask.shape
@@ -111,10 +103,6 @@ def seen_counts(mesh: trimesh.Trimesh, projections: np.ndarray,
         counts[ok[front & mask[row[ok], col[ok]]]] += 1
     return counts
 
-
-def foot_ratio(projection: np.ndarray) -> float:
-    """World size of one pixel per unit of camera depth (1 / the focal length in pixels)."""
-    return 1.0 / abs(decompose_projection(projection)[0][0, 0])
 
 
 def underside_plane(mesh: trimesh.Trimesh, projections: np.ndarray,
