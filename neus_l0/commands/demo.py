@@ -36,6 +36,9 @@ def add_parser(sub: argparse._SubParsersAction, name: str) -> argparse.ArgumentP
     p.add_argument("--drop-outside-masks", action=argparse.BooleanOptionalAction, default=True,
                    help="drop mesh pieces a view sees outside its mask (as `neus-l0 mesh "
                         "--drop-outside-masks`; default on)")
+    p.add_argument("--fill-missed", action=argparse.BooleanOptionalAction, default=True,
+                   help="fill thin parts the masks see and the mesh misses from the visual "
+                        "hull (as `neus-l0 mesh --fill-missed`; default on)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     accept_overrides(p)
     return p
@@ -69,7 +72,8 @@ def run(args: argparse.Namespace) -> int:
                                   device=args.device, threads=args.threads,
                                   resolution=args.resolution, quiet=args.quiet,
                                   close_underside=args.close_underside,
-                                  drop_outside_masks=args.drop_outside_masks, budget=budget))
+                                  drop_outside_masks=args.drop_outside_masks,
+                                  fill_missed=args.fill_missed, budget=budget))
     if result.signal:
         print(f"neus-l0 demo: stopped by {result.signal} at iteration {result.iteration}; "
               f"checkpoint {result.checkpoint} written; run the same command again to "

@@ -106,6 +106,8 @@ class RunSpec:
             mesh --drop-outside-masks`; snapshots too).
         inset: extract each mesh at the level -inset/s (`neus-l0 mesh --inset`; snapshots
             too).
+        fill_missed: fill the parts the masks see and each mesh misses (`neus-l0 mesh
+            --fill-missed`; snapshots too).
     """
 
     name: str
@@ -131,6 +133,7 @@ class RunSpec:
     close_underside: bool = False
     drop_outside_masks: bool = False
     inset: float = 0.0
+    fill_missed: bool = False
 
     @property
     def run_dir(self) -> Path:
@@ -141,7 +144,8 @@ class RunSpec:
         """The optional mesh steps (`neus_l0.mesh.from_run.MeshSteps`)."""
         from neus_l0.mesh.from_run import MeshSteps
 
-        return MeshSteps(self.close_underside, self.drop_outside_masks, self.inset)
+        return MeshSteps(self.close_underside, self.drop_outside_masks, self.inset,
+                         self.fill_missed)
 
     def run_overrides(self) -> list[str]:
         """The bench's settings, the user's overrides, then the run's own (which win).

@@ -53,7 +53,7 @@ SWEEP_NAMES = ("sweep.json", "runs", "scenes", "plots", "results.csv", "results.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
                "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels",
                "snapshots", "planned", "close_underside",
-               "drop_outside_masks", "inset")
+               "drop_outside_masks", "inset", "fill_missed")
 
 
 @dataclasses.dataclass
@@ -231,6 +231,8 @@ class SweepSpec:
             (`RunSpec.close_underside`).
         drop_outside_masks: drop each mesh's pieces a view sees outside its mask.
         inset: mesh each run at the level -inset/s (`RunSpec.inset`).
+        fill_missed: fill the parts the masks see and each mesh misses
+            (`RunSpec.fill_missed`).
     """
 
     out_dir: str | Path
@@ -257,6 +259,7 @@ class SweepSpec:
     close_underside: bool = False
     drop_outside_masks: bool = False
     inset: float = 0.0
+    fill_missed: bool = False
 
     def __post_init__(self):
         for key, value in device_defaults(self.device).items():
@@ -278,6 +281,7 @@ class SweepSpec:
             **({"close_underside": True} if self.close_underside else {}),
             **({"drop_outside_masks": True} if self.drop_outside_masks else {}),
             **({"inset": self.inset} if self.inset else {}),
+            **({"fill_missed": True} if self.fill_missed else {}),
         }
 
     def run_spec(self, scene: str, folder: Path, sampler: str, budget: float, seed: int,
@@ -293,7 +297,8 @@ class SweepSpec:
                        psnr_pixels=self.psnr_pixels, planned=self.planned,
                        snapshots=snapshot_marks(float(budget), self.snapshots),
                        close_underside=self.close_underside,
-                       drop_outside_masks=self.drop_outside_masks, inset=self.inset)
+                       drop_outside_masks=self.drop_outside_masks, inset=self.inset,
+                       fill_missed=self.fill_missed)
 
 
 def plan_runs(spec: SweepSpec, resolved: Sequence[tuple[str, Path]],

@@ -17,7 +17,9 @@ points. Nothing else of the mesh moves: a point the mesh already covers in a vie
 missed pixel there, and a missed pixel that no grid point inside every mask falls on adds
 nothing.
 
-The mesh's silhouette in a view is rasterised from dense surface samples
+The mesh's pieces that a view sees off its mask (`neus_l0.mesh.mask_outliers`: floaters
+next to a thin part that training smeared out) are not the object and cover nothing. The
+mesh's silhouette in a view is rasterised from dense surface samples
 (`neus_l0.mesh.raster`) and grown by one pixel (a 3x3 dilation, so that no gap between
 samples reads as missed, and a one-pixel tolerance for the mesh's own rounding at the
 silhouette); `tol_px` widens it further.
@@ -34,7 +36,9 @@ import trimesh
 from scipy import ndimage
 
 from neus_l0.data.cameras import depth_projection, pixel_indices, to_world
+from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.cull import dilate_mask
+from neus_l0.mesh.mask_outliers import mask_outliers
 from neus_l0.mesh.raster import silhouette, surface_samples
 
 MIN_VIEWS = 2
@@ -49,7 +53,8 @@ FAR = 1.0e3
 def missed_pixels(mesh: trimesh.Trimesh, projections: np.ndarray,
                   masks: Sequence[np.ndarray], tol_px: int = 0,
                   seed: int = 0) -> list[np.ndarray]:
-    """Per view, the foreground pixels that the mesh's silhouette does not reach.
+    """Per view, the foreground pixels that the mesh's silhouette does not reach (its pieces
+    seen off a mask left out).
 
     Args:
         mesh: the first mesh, world units.
@@ -62,6 +67,10 @@ def missed_pixels(mesh: trimesh.Trimesh, projections: np.ndarray,
         V (H, W) bool: mask and not (silhouette grown by 1 + `tol_px`).
     """
     P_n = depth_projection(np.asarray(projections, dtype=np.float64))
+    try:
+        mesh, _ = mask_outliers(mesh, projections, masks)
+    except NeusL0Error:  # every piece off some mask: the masks say nothing of this mesh
+        pass
     samples = surface_samples(mesh, projections, seed=seed)
     out = []
     for v, mask in enumerate(masks):

@@ -49,6 +49,9 @@ class DemoOptions:
     drop_outside_masks: bool = True
     """Drop the mesh's pieces that a view sees outside its mask (`neus-l0 mesh
     --drop-outside-masks`)."""
+    fill_missed: bool = True
+    """Fill the thin parts the masks see and the mesh misses (`neus-l0 mesh
+    --fill-missed`)."""
     budget: float = 0.0
     """Seconds for the training stage (``train.budget``: compile, steps and the final
     checkpoint; the iterations planned from the measured step rate); 0: the config's
@@ -139,6 +142,7 @@ def run_demo(opts: DemoOptions) -> DemoResult:
         "mesh": {"path": str(paths["mesh"]), "vertices": len(mesh.vertices),
                  "faces": len(mesh.faces), "resolution": opts.resolution,
                  "close_underside": opts.close_underside,
+                 "filled_missed": mesh.metadata.get("filled_missed"),
                  "underside_plane": mesh.metadata.get("underside_plane"),
                  "dropped_outside_masks": mesh.metadata.get("dropped_outside_masks")},
         "sampler": cfg.sampler.name,
@@ -182,7 +186,8 @@ def _mesh_score_draw(opts: DemoOptions, paths: dict[str, Path], device: str,
     t0 = time.monotonic()
     print(f"[3/4] extracting the mesh at {opts.resolution}^3 ...", flush=True)
     mesh = mesh_from_run(paths["run"], opts.resolution, device, progress=not opts.quiet,
-                         steps=MeshSteps(opts.close_underside, opts.drop_outside_masks)).mesh
+                         steps=MeshSteps(opts.close_underside, opts.drop_outside_masks,
+                                         fill_missed=opts.fill_missed)).mesh
     mesh_path = export_mesh(mesh, paths["mesh"])
     timings["mesh_s"] = time.monotonic() - t0
 

@@ -154,6 +154,20 @@ def test_the_silhouette_of_the_body_matches_its_mask_and_only_the_rod_is_missed(
         assert (body_masks[v] <= cover).all()
 
 
+def test_a_floater_seen_off_the_masks_covers_nothing(views):
+    """A piece beside the rod that some views see off their masks (what training leaves
+    where it smeared a thin part) does not hide the rod's pixels in the views where it
+    overlaps them."""
+    P, masks = views
+    floater = trimesh.creation.icosphere(radius=0.12).apply_translation((0.85, -0.55, 1.6))
+    with_floater = trimesh.util.concatenate([BODY, floater])
+    plain = missed_pixels(BODY, P, masks)
+    own = surface_samples(floater, P)
+    assert any((silhouette(own, p, (H, W)) & m).any() for p, m in zip(P, plain))  # it hides some
+    for a, b in zip(missed_pixels(with_floater, P, masks), plain):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_the_missing_rod_is_found_and_nothing_else(views):
     """The first mesh lacks the rod; the points found lie at the rod, along most of its
     height, and the extraction with the solid has a rod where the body's had none."""

@@ -34,10 +34,12 @@ def test_the_demo_trains_a_planned_budget_and_a_rerun_reuses_it(small, monkeypat
     assert metrics["mesh"]["close_underside"] is True
     assert "underside_plane" in metrics["mesh"]
     assert isinstance(metrics["mesh"]["dropped_outside_masks"], list)
-    assert main([*argv, "--no-close-underside", "--no-drop-outside-masks"]) == 0
+    assert metrics["mesh"]["filled_missed"]["grid"] == metrics["mesh"]["resolution"]
+    assert main([*argv, "--no-close-underside", "--no-drop-outside-masks",
+                 "--no-fill-missed"]) == 0
     plain = json.loads((out / "metrics.json").read_text())["mesh"]
     assert plain["close_underside"] is False and plain["underside_plane"] is None
-    assert plain["dropped_outside_masks"] is None
+    assert plain["dropped_outside_masks"] is None and plain["filled_missed"] is None
     capsys.readouterr()
     # the recorded plan does not let another sampler through under the run's label
     assert main([*argv, "sampler=hvs"]) == 2
