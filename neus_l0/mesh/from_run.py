@@ -22,7 +22,7 @@ from neus_l0.fields.model import NeuSModel
 from neus_l0.mesh.extract import extract_mesh, progress_bars
 from neus_l0.mesh.inset import inset
 from neus_l0.mesh.mask_outliers import mask_outliers
-from neus_l0.mesh.missed_parts import missed_solid, with_solid
+from neus_l0.mesh.missed_parts import missed_solid, solid_model
 from neus_l0.mesh.underside import cut_below, underside_line, underside_plane
 from neus_l0.run.checkpoints import load_trained_model
 
@@ -39,7 +39,8 @@ class MeshSteps:
             mask (`neus_l0.mesh.mask_outliers`); reads the masks.
         inset: K >= 0: extract the level ``-K / s`` instead of 0 (`neus_l0.mesh.inset`).
         fill_missed: add the visual hull's points on the pixels a mask sees and the first
-            mesh misses (`neus_l0.mesh.missed_parts`), then extract again; reads the masks.
+            mesh misses (`neus_l0.mesh.missed_parts`) as pieces of their own, after the
+            other steps; reads the masks.
     """
 
     close_underside: bool = False
@@ -115,12 +116,20 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         if steps.fill_missed:
             solid, filled = missed_solid(mesh, *views, scale_mat,
                                          None if hull is None else hull.contains, resolution)
-        if plane is not None or solid is not None:
-            again = field if solid is None else with_solid(field, solid)
-            if plane is not None:
-                again = cut_below(again, *plane_to_normalised(plane, scale_mat))
-            mesh = extract_mesh(again, scale_mat, resolution=resolution, clean=clean,
+        if plane is not None:
+            cut = cut_below(field, *plane_to_normalised(plane, scale_mat))
+            mesh = extract_mesh(cut, scale_mat, resolution=resolution, clean=clean,
                                 device=device, method=method, hull=hull)
+        parts = None
+        if solid is not None:
+            parts = solid_model(solid)
+            if plane is not None:
+                parts = cut_below(parts, *plane_to_normalised(plane, scale_mat))
+            try:
+                parts = extract_mesh(parts, scale_mat, resolution=resolution, clean=False,
+                                     device=device, method=method)
+            except NeusL0Error:  # nothing of it above the underside's plane
+                parts = None
     meta = dict(mesh.metadata)
     if steps.inset:
         meta["inset"] = {"k": steps.inset, "level": -delta,
@@ -132,6 +141,8 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         meta["filled_missed"] = filled
     if steps.drop_outside_masks:
         mesh, meta["dropped_outside_masks"] = mask_outliers(mesh, *views)
+    if parts is not None and len(parts.faces):  # after the drop: a part merges with nothing
+        mesh = trimesh.util.concatenate([mesh, parts])
     mesh.metadata.update(meta)
     return RunMesh(mesh, model, cfg, info)
 

@@ -9,11 +9,14 @@ and the visual hull at pixel resolution says where: the points that every view s
 its mask (`neus_l0.bounds.silhouettes`' rule at margin 0). Along a missed ray these form a
 short segment at the part (0.5-2 world units from the rod's axis on `pits-deep`, session 20).
 
-This step adds the points of a regular grid that lie inside every training view's mask and
-fall on missed pixels of at least `min_views` views (`missed_points`), as a solid: the signed
-distance of that set of grid points (`GridSolid`), united with the trained SDF by a minimum
-(`with_solid`), so that marching cubes closes the part's surface half a cell around its
-points. Nothing else of the mesh moves: a point the mesh already covers in a view is not on a
+This step takes the points of a regular grid that lie inside every training view's mask and
+fall on missed pixels of at least `min_views` views (`missed_points`) as a solid: the signed
+distance of that set of grid points (`GridSolid`), whose surface marching cubes closes half a
+cell around them (`solid_model`). `neus_l0.mesh.from_run` adds its pieces to the mesh after the
+other steps, as closed pieces of their own: a rod's piece meets the surface it stands on
+within half a cell. Joined to the SDF by a minimum instead, the rod merged with a floater that
+training left beside it, and `--drop-outside-masks` then dropped both (pits-and-thin, seed 0).
+Nothing else of the mesh moves: a point the mesh already covers in a view is not on a
 missed pixel there, and a missed pixel that no grid point inside every mask falls on adds
 nothing.
 
@@ -151,30 +154,26 @@ class GridSolid:
         return torch.where(inside, vals, torch.full_like(vals, FAR)).to(p.device)
 
 
-class _UnionSdf:
-    """``sdf(p)`` (N, 1) = min(inner SDF, the solid's distance)."""
-
-    def __init__(self, inner, solid: GridSolid):
-        self.inner, self.solid = inner, solid
+class _SolidSdf:
+    def __init__(self, solid: GridSolid):
+        self.solid = solid
 
     def sdf(self, p: torch.Tensor) -> torch.Tensor:
-        v = self.inner.sdf(p)
-        return torch.minimum(v, self.solid.sdf(p).reshape(v.shape).to(v.dtype))
+        return self.solid.sdf(p).reshape(-1, 1)
 
 
-class _FilledModel:
-    """What `neus_l0.mesh.extract.extract_mesh` reads of a model, its SDF united with a
-    solid (`with_solid`)."""
+class _SolidModel:
+    """What `neus_l0.mesh.extract.extract_mesh` reads of a model (``sdf.sdf(p)`` (N, 1),
+    ``color``), for a solid alone (`solid_model`)."""
 
-    def __init__(self, model, solid: GridSolid):
-        self.sdf = _UnionSdf(model.sdf, solid)
-        self.color = getattr(model, "color", None)
+    def __init__(self, solid: GridSolid):
+        self.sdf = _SolidSdf(solid)
+        self.color = None
 
 
-def with_solid(model, solid: GridSolid) -> _FilledModel:
-    """`model` (anything with ``sdf.sdf(p)``, normalised frame) whose SDF is united with
-    `solid`, for `neus_l0.mesh.extract.extract_mesh`."""
-    return _FilledModel(model, solid)
+def solid_model(solid: GridSolid) -> _SolidModel:
+    """`solid` as a model `neus_l0.mesh.extract.extract_mesh` extracts (its own pieces)."""
+    return _SolidModel(solid)
 
 
 def missed_solid(mesh: trimesh.Trimesh, projections: np.ndarray, masks: Sequence[np.ndarray],
