@@ -49,8 +49,6 @@ MIN_VIEWS = 2
 GRID_CAP = 256
 """The finest grid the filled points are placed on (samples per axis): at 256 over the unit
 sphere's box a cell is ~1 world unit on the synthetic scenes, a pixel at 400x300."""
-FAR = 1.0e3
-"""The solid's distance outside its box (normalised units: far from any surface)."""
 
 
 def missed_pixels(mesh: trimesh.Trimesh, projections: np.ndarray,
@@ -143,15 +141,20 @@ class GridSolid:
         return cls(torch.as_tensor(values, dtype=torch.float32), lo * step - bound, step)
 
     def sdf(self, p: torch.Tensor) -> torch.Tensor:
-        """(N,) the solid's distance at points `p` (N, 3), trilinear inside the box, `FAR`
-        outside it."""
+        """(N,) the solid's distance at points `p` (N, 3): trilinear inside the box; outside
+        it, the distance to the box plus 1.5 cells (a lower bound of the distance to the
+        surface, which lies at least 1.5 cells inside the box's faces), so that sparse
+        extraction's block test (`neus_l0.mesh.extract.keep_blocks`) finds the solid."""
         size = torch.as_tensor((np.array(self.values.shape) - 1) * self.step, dtype=torch.float64)
         q = (p.detach().double().cpu() - torch.as_tensor(self.origin)) / size * 2.0 - 1.0
         inside = ((q >= -1.0) & (q <= 1.0)).all(dim=-1)
         grid = q.flip(-1).float()[None, :, None, None, :]  # grid_sample's (x, y, z) = (Z, Y, X)
         vals = torch.nn.functional.grid_sample(self.values[None, None], grid,
                                                align_corners=True).reshape(-1)
-        return torch.where(inside, vals, torch.full_like(vals, FAR)).to(p.device)
+        lo = torch.as_tensor(self.origin)
+        gap = torch.maximum(lo - p.detach().double().cpu(), p.detach().double().cpu() - lo - size)
+        outside = gap.clamp(min=0.0).norm(dim=-1) + 1.5 * self.step
+        return torch.where(inside, vals, outside.float()).to(p.device)
 
 
 class _SolidSdf:

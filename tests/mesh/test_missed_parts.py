@@ -12,7 +12,6 @@ from neus_l0.cli import main
 from neus_l0.data.cameras import look_at, projection_matrix
 from neus_l0.mesh.extract import extract_mesh
 from neus_l0.mesh.missed_parts import (
-    FAR,
     GridSolid,
     missed_pixels,
     missed_points,
@@ -181,6 +180,9 @@ def test_the_missing_rod_is_found_and_nothing_else(views):
     assert np.ptp(world[:, 2]) > 0.6  # most of the rod's height (1.0)
     plain = extract_mesh(BoxField(), SCALE, resolution=64, clean=False)
     parts = extract_mesh(solid_model(solid), SCALE, resolution=64, clean=False)
+    sparse = extract_mesh(solid_model(solid), SCALE, resolution=64, clean=False,
+                          method="sparse")  # the block test finds the solid too
+    assert len(sparse.faces) == len(parts.faces)
     filled = trimesh.util.concatenate([plain, parts])
     near = lambda m: np.hypot(m.vertices[:, 0] - 0.55, m.vertices[:, 1] + 0.55) < 0.3  # noqa
     assert not (near(plain) & (plain.vertices[:, 2] > 1.1)).any()
@@ -236,8 +238,15 @@ def test_the_solid_is_the_exact_grid_distance_and_interpolates_it(points, seed):
         want += wgt * ref[tuple((i0 + c).T)]
     got = solid.sdf(torch.as_tensor(f * solid.step + solid.origin)).numpy()
     np.testing.assert_allclose(got, want, atol=1e-5)
-    far = torch.as_tensor(solid.origin - 1.0)[None]
-    assert solid.sdf(far).item() == FAR
+    # outside the box: the distance to it plus 1.5 cells, below the true distance
+    far = torch.as_tensor(solid.origin - [1.0, 0.0, 0.0])[None]
+    assert solid.sdf(far).item() == pytest.approx(1.0 + 1.5 * solid.step, rel=1e-5)
+    cells = index * solid.step - 1.0
+    out = rng.uniform(-3.0, 3.0, size=(200, 3))
+    box_hi = solid.origin + (np.array(ref.shape) - 1) * solid.step
+    out = out[((out < solid.origin) | (out > box_hi)).any(axis=1)]
+    true = np.sqrt(((out[:, None] - cells[None]) ** 2).sum(-1)).min(1) - 0.5 * solid.step
+    assert (solid.sdf(torch.as_tensor(out)).numpy() <= true + 1e-6).all()
 
 
 def test_the_command_reports_what_it_filled(run_copy, capsys):
