@@ -1,6 +1,6 @@
 """`tools/budget_frontier.py` and `tools/pair_features.py` on hand-made bench folders: the
 seed-wise merge of several folders, the equal-time comparison, and the paired sign test
-over folders that two chains filled side by side."""
+over folders that two chains filled side by side; `tools/make_stool.py`'s object."""
 
 from __future__ import annotations
 
@@ -439,3 +439,29 @@ def test_fit_exact_sdf_lowers_the_error_and_probes_a_rod_as_its_radius(tiny_scen
     assert last < first
     with pytest.raises(SystemExit, match="--axis"):
         tool.main([str(tiny_scene), "--axis", "1", "--z", "0,1"])
+
+
+def test_the_stool_and_its_features_agree_in_synths_frame(tmp_path):
+    """`tools/make_stool.py`: the mesh, turned z-up as synth turns it (scale 1: 250 across)
+    and centred at `WORLD_OFFSET`, has each feature's rod where the feature says: the rod's
+    two end rings (32 vertices each) at the named radius from its axis, half its length from
+    its centre."""
+    import numpy as np
+    import trimesh
+
+    from neus_l0.synthetic.scene import WORLD_OFFSET
+
+    assert _tool("make_stool").main([str(tmp_path)]) == 0
+    mesh = trimesh.load(tmp_path / "stool.ply")
+    mesh.apply_transform([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])  # synth's
+    assert np.ptp(mesh.vertices, axis=0).max() == pytest.approx(250.0)
+    mesh.apply_translation(np.asarray(WORLD_OFFSET) - mesh.bounds.mean(axis=0))
+    feats = json.loads((tmp_path / "features.json").read_text())["features"]
+    assert len(feats) == 8 and all(f["kind"] == "thin" for f in feats)
+    v = np.asarray(mesh.vertices)
+    for f in feats:
+        c, a, r = np.asarray(f["center"]), np.asarray(f["axis"]), float(f["name"].split()[1][1:])
+        along = (v - c) @ a
+        off_axis = np.linalg.norm(v - c - along[:, None] * a, axis=1)
+        ring = (np.abs(off_axis - r) < 1e-3) & (np.abs(np.abs(along) - f["radius"]) < 1e-3)
+        assert ring.sum() >= 64, f["name"]
