@@ -183,7 +183,7 @@ def missed_solid(mesh: trimesh.Trimesh, projections: np.ndarray, masks: Sequence
                  scale_mat: np.ndarray, contains, resolution: int,
                  min_views: int = MIN_VIEWS, tol_px: int = 0
                  ) -> tuple[GridSolid | None, dict]:
-    """The solid to add to a run's SDF, and what was found.
+    """The solid whose pieces `neus_l0.mesh.from_run` adds to a run's mesh, and what was found.
 
     Args:
         mesh: the first mesh (world units).
