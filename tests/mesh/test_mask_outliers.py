@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from neus_l0.data.cameras import decompose_projection, look_at, projection_matrix
+from neus_l0.data.cameras import look_at, projection_matrix
 from neus_l0.errors import NeusL0Error
 from neus_l0.mesh.mask_outliers import mask_outliers, outside_share
 
@@ -30,27 +30,6 @@ def box(extents, centre):
     return b
 
 
-def silhouettes(P, boxes):
-    """V (H, W) bool: the pixels whose centre ray meets any of the axis-aligned `boxes`
-    (meshes; a slab test on their bounds)."""
-    xs, ys = np.meshgrid(np.arange(W), np.arange(H))
-    pix = np.stack([xs.ravel(), ys.ravel(), np.ones(W * H)], 1)
-    out = []
-    for p in P:
-        Kp, c2w = decompose_projection(p)
-        d = pix @ np.linalg.inv(Kp).T @ c2w[:3, :3].T  # (HW, 3)
-        o = c2w[:3, 3]
-        hit = np.zeros(W * H, bool)
-        for b in boxes:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t0, t1 = (b.bounds[0] - o) / d, (b.bounds[1] - o) / d
-            near = np.nanmax(np.minimum(t0, t1), axis=1)
-            far = np.nanmin(np.maximum(t0, t1), axis=1)
-            hit |= (far >= near) & (far > 0)
-        out.append(hit.reshape(H, W))
-    return out
-
-
 OBJECT = box((2.0, 2.0, 1.0), (0, 0, 0.5))
 ROD = box((0.06, 0.06, 1.2), (0.6, 0.6, 1.6))  # thin, apart from the box (a grid's cut)
 HIDDEN = trimesh.creation.icosphere(radius=0.2).apply_translation((0, 0, 0.5))
@@ -58,9 +37,9 @@ FLOATER = trimesh.creation.icosphere(radius=0.15).apply_translation((1.6, 0.0, 0
 
 
 @pytest.fixture(scope="module")
-def views():
+def views(box_masks):
     P = cameras()
-    return P, silhouettes(P, [OBJECT, ROD])
+    return P, box_masks(P, [OBJECT, ROD], H, W)
 
 
 def test_the_share_outside_is_counted_per_view(views):

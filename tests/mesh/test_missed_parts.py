@@ -45,27 +45,6 @@ def box(extents, centre):
     return b
 
 
-def masks_of(P, meshes):
-    """V (H, W) bool: pixels whose centre ray meets any of the axis-aligned boxes (a slab
-    test on their bounds, exact)."""
-    xs, ys = np.meshgrid(np.arange(W), np.arange(H))
-    pix = np.stack([xs.ravel(), ys.ravel(), np.ones(W * H)], 1)
-    out = []
-    for p in P:
-        M, t = p[:, :3], p[:, 3]
-        o = -np.linalg.solve(M, t)
-        d = pix @ np.linalg.inv(M).T
-        hit = np.zeros(W * H, bool)
-        for b in meshes:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t0, t1 = (b.bounds[0] - o) / d, (b.bounds[1] - o) / d
-            near = np.nanmax(np.minimum(t0, t1), axis=1)
-            far = np.nanmin(np.maximum(t0, t1), axis=1)
-            hit |= (far >= near) & (far > 0)
-        out.append(hit.reshape(H, W))
-    return out
-
-
 BODY = box((2.0, 2.0, 1.0), (0.0, 0.0, 0.5))
 ROD = box((0.16, 0.16, 1.0), (0.55, -0.55, 1.5))  # on the body's top, 1.6 px across
 
@@ -86,9 +65,9 @@ class BoxField:
 
 
 @pytest.fixture(scope="module")
-def views():
+def views(box_masks):
     P = cameras()
-    return P, masks_of(P, [BODY, ROD])
+    return P, box_masks(P, [BODY, ROD], H, W)
 
 
 def plain_missed_points(points, P, masks, missed, min_views):
@@ -134,13 +113,13 @@ def test_a_view_that_does_not_see_a_point_says_nothing(views):
     assert keep.all() and count.tolist() == [0]
 
 
-def test_the_silhouette_of_the_body_matches_its_mask_and_only_the_rod_is_missed(views):
+def test_the_silhouette_of_the_body_matches_its_mask_and_only_the_rod_is_missed(views, box_masks):
     """The mesh without the rod: its silhouette covers the body's mask (to the pixel it is
     grown by), and the missed pixels are the rod's, in the views that see it against the
     background."""
     P, masks = views
-    body_masks = masks_of(P, [BODY])
-    rod_masks = masks_of(P, [ROD])
+    body_masks = box_masks(P, [BODY], H, W)
+    rod_masks = box_masks(P, [ROD], H, W)
     missed = missed_pixels(BODY, P, masks)
     for v in range(len(P)):
         assert not (missed[v] & body_masks[v]).any()
