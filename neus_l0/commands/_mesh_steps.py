@@ -7,8 +7,8 @@ import argparse
 
 
 def add_mesh_step_flags(p: argparse.ArgumentParser) -> None:
-    """--close-underside, --drop-outside-masks, --fill-missed and --inset K (all off by
-    default)."""
+    """--close-underside, --drop-outside-masks, --fill-missed, --photo-carve and --inset K
+    (all off by default)."""
     p.add_argument("--close-underside", action="store_true",
                    help="close the side no training view sees flat, under the lowest point "
                         "they see in their masks (needs the scene's masks; extracts twice)")
@@ -19,6 +19,10 @@ def add_mesh_step_flags(p: argparse.ArgumentParser) -> None:
                    help="fill thin parts the masks see and the mesh misses: the visual hull's "
                         "points on mask pixels the mesh's silhouette misses in 2 views or more "
                         "(needs the scene's masks; extracts twice)")
+    p.add_argument("--photo-carve", action="store_true",
+                   help="carve free space behind the mesh in its concavities (a deep pit's "
+                        "raised floor) where a plane sweep of the training images agrees in "
+                        "2 views or more (needs the scene's images and masks; extracts twice)")
     p.add_argument("--inset", type=float, default=0.0, metavar="K",
                    help="extract the SDF's level -K/s, s NeuS's learned sharpness (a zero level "
                         "trained with NeuS's colour composite over black sits 0.1-0.9 of 1/s "

@@ -108,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     use_threads(args.threads, device)
     t0 = time.monotonic()
     steps = MeshSteps(args.close_underside, args.drop_outside_masks, args.inset,
-                      args.fill_missed)
+                      args.fill_missed, args.photo_carve)
     made = mesh_from_run(args.run, args.resolution, device, args.checkpoint, args.clean, method,
                          progress=not args.quiet, steps=steps)
     mesh, model, info, scale_mat = made.mesh, made.model, made.info, made.scale_mat

@@ -393,3 +393,36 @@ def read_masks(scene_dir: str | Path) -> dict[int, np.ndarray]:
             img = img[..., :3].max(axis=-1)
         masks[i] = img > 127
     return masks
+
+
+LUMA_BGR = (0.114, 0.587, 0.299)
+"""Rec. 601 luma weights in OpenCV's channel order (blue, green, red)."""
+
+
+def read_grays(scene_dir: str | Path) -> dict[int, np.ndarray]:
+    """Grey images ``image/*`` by view index (`neus_l0.data.views`), Rec. 601 luma of the
+    colour in [0, 1] (8- or 16-bit; an alpha channel is ignored).
+
+    Returns:
+        {view index: (H, W) float32}, in index order.
+
+    Raises:
+        NeusL0Error: no image folder/files, or an unreadable image.
+    """
+    folder = Path(scene_dir) / "image"
+    files = indexed_files(folder) if folder.is_dir() else {}
+    if not files:
+        raise NeusL0Error(f"{folder}: no image files")
+    grays = {}
+    for i, f in files.items():
+        img = imread_bytes(Path(f), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise NeusL0Error(f"{f}: cannot read image")
+        scale = 65535.0 if img.dtype == np.uint16 else 255.0
+        img = img.astype(np.float32) / np.float32(scale)
+        if img.ndim == 2:
+            grays[i] = img
+        else:
+            grays[i] = img[..., :3] @ np.asarray(LUMA_BGR, np.float32)
+    return grays
+

@@ -16,13 +16,14 @@ import trimesh
 
 from neus_l0.bounds.hull import load_run_hull
 from neus_l0.config.schema import Config
-from neus_l0.data.cameras import read_masks, read_world_mats
+from neus_l0.data.cameras import read_grays, read_masks, read_world_mats
 from neus_l0.errors import NeusL0Error
 from neus_l0.fields.model import NeuSModel
 from neus_l0.mesh.extract import extract_mesh, progress_bars
 from neus_l0.mesh.inset import inset
 from neus_l0.mesh.mask_outliers import mask_outliers
 from neus_l0.mesh.missed_parts import missed_solid, solid_model
+from neus_l0.mesh.photo_carve import carve_solid, carved_model
 from neus_l0.mesh.underside import cut_below, underside_line, underside_plane
 from neus_l0.run.checkpoints import load_trained_model
 
@@ -41,12 +42,16 @@ class MeshSteps:
         fill_missed: add the visual hull's points on the pixels a mask sees and the first
             mesh misses (`neus_l0.mesh.missed_parts`) as pieces of their own, after the
             other steps; reads the masks.
+        photo_carve: carve the free space that a plane sweep of the training images finds
+            behind the first mesh in its concavities (`neus_l0.mesh.photo_carve`: a pit's
+            raised floor); reads the masks and the images.
     """
 
     close_underside: bool = False
     drop_outside_masks: bool = False
     inset: float = 0.0
     fill_missed: bool = False
+    photo_carve: bool = False
 
     def __post_init__(self):
         if not 0 <= self.inset < float("inf"):
@@ -55,7 +60,8 @@ class MeshSteps:
     @property
     def needs_masks(self) -> bool:
         """Whether a step reads the run's scene and masks."""
-        return self.close_underside or self.drop_outside_masks or self.fill_missed
+        return (self.close_underside or self.drop_outside_masks or self.fill_missed
+                or self.photo_carve)
 
 
 @dataclasses.dataclass
@@ -116,9 +122,16 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
         if steps.fill_missed:
             solid, filled = missed_solid(mesh, *views, scale_mat,
                                          None if hull is None else hull.contains, resolution)
+        carved, carve_report = None, None
+        if steps.photo_carve:
+            carved, carve_report = carve_solid(mesh, *views, training_grays(run_dir),
+                                               scale_mat, resolution)
+        if carved is not None:
+            field = carved_model(field, carved)
         if plane is not None:
-            cut = cut_below(field, *plane_to_normalised(plane, scale_mat))
-            mesh = extract_mesh(cut, scale_mat, resolution=resolution, clean=clean,
+            field = cut_below(field, *plane_to_normalised(plane, scale_mat))
+        if plane is not None or carved is not None:
+            mesh = extract_mesh(field, scale_mat, resolution=resolution, clean=clean,
                                 device=device, method=method, hull=hull)
         parts = None
         if solid is not None:
@@ -139,12 +152,29 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
                                    {"up": plane[0].tolist(), "height": plane[1]})
     if steps.fill_missed:
         meta["filled_missed"] = filled
+    if steps.photo_carve:
+        meta["photo_carved"] = carve_report
     if steps.drop_outside_masks:
         mesh, meta["dropped_outside_masks"] = mask_outliers(mesh, *views)
     if parts is not None and len(parts.faces):  # after the drop: a part merges with nothing
         mesh = trimesh.util.concatenate([mesh, parts])
     mesh.metadata.update(meta)
     return RunMesh(mesh, model, cfg, info)
+
+
+def run_scene(run_dir: str | Path) -> tuple[Path, list[int] | None]:
+    """The run's scene folder and its training views (``run.json``; None: every view).
+
+    Raises:
+        NeusL0Error: no readable ``run.json``.
+    """
+    record = Path(run_dir) / "run.json"
+    try:
+        run = json.loads(record.read_text())
+        return Path(run["scene"]), (run.get("views") or {}).get("train")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        raise NeusL0Error(f"{record}: cannot read the run's scene, which the masks come "
+                          f"from ({e})") from None
 
 
 def training_views(run_dir: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -154,26 +184,39 @@ def training_views(run_dir: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
     Raises:
         NeusL0Error: no ``run.json``, its scene is gone or lacks a training view's mask.
     """
-    record = Path(run_dir) / "run.json"
-    try:
-        run = json.loads(record.read_text())
-        scene = Path(run["scene"])
-        train = (run.get("views") or {}).get("train")
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
-        raise NeusL0Error(f"{record}: cannot read the run's scene, which the masks come "
-                          f"from ({e})") from None
+    scene, train = run_scene(run_dir)
     projections = read_world_mats(scene)
     masks = read_masks(scene)
     train = train or list(range(len(projections)))
     if not (isinstance(train, list)
             and all(isinstance(v, int) and 0 <= v < len(projections) for v in train)):
-        raise NeusL0Error(f"{record}: views.train must list view indices below "
-                          f"{len(projections)} (the scene's cameras), got {str(train)[:80]}")
+        raise NeusL0Error(f"{Path(run_dir) / 'run.json'}: views.train must list view indices "
+                          f"below {len(projections)} (the scene's cameras), got "
+                          f"{str(train)[:80]}")
     missing = [v for v in train if v not in masks]
     if missing:
         raise NeusL0Error(f"{scene / 'mask'}: no mask for training view(s) {missing[:5]}; "
                           "--close-underside and --drop-outside-masks need the masks")
     return projections[train], [masks[v] for v in train]
+
+
+def training_grays(run_dir: str | Path) -> np.ndarray:
+    """(V, H, W) float32 grey images of the run's training views (as `training_views`).
+
+    Raises:
+        NeusL0Error: an image missing, unreadable, or of another size than the masks.
+    """
+    scene, train = run_scene(run_dir)
+    grays = read_grays(scene)
+    train = train or sorted(grays)
+    missing = [v for v in train if v not in grays]
+    if missing:
+        raise NeusL0Error(f"{scene / 'image'}: no image for training view(s) {missing[:5]}; "
+                          "--photo-carve needs the images")
+    shapes = {grays[v].shape for v in train}
+    if len(shapes) > 1:
+        raise NeusL0Error(f"{scene / 'image'}: images of different sizes {sorted(shapes)}")
+    return np.stack([grays[v] for v in train])
 
 
 def plane_to_normalised(plane: tuple[np.ndarray, float], scale_mat: np.ndarray
@@ -206,6 +249,12 @@ def steps_report(metadata: dict) -> list[str]:
                      + ("nothing filled" if not f["points"] else
                         f"{f['points']} grid points filled in {f['pieces']} piece(s) "
                         f"(grid {f['grid']}^3)"))
+    if "photo_carved" in metadata:
+        c = metadata["photo_carved"]
+        lines.append(f"photo carve: {c['swept']} pixels swept in concavities, {c['carving']} "
+                     "found free space behind the mesh, "
+                     + ("nothing carved" if not c["points"] else
+                        f"{c['points']} grid points carved (grid {c['grid']}^3)"))
     if "dropped_outside_masks" in metadata:
         dropped = metadata["dropped_outside_masks"]
         lines.append("outside the masks: nothing dropped" if not dropped else

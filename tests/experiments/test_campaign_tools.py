@@ -465,3 +465,26 @@ def test_the_stool_and_its_features_agree_in_synths_frame(tmp_path):
         off_axis = np.linalg.norm(v - c - along[:, None] * a, axis=1)
         ring = (np.abs(off_axis - r) < 1e-3) & (np.abs(np.abs(along) - f["radius"]) < 1e-3)
         assert ring.sum() >= 64, f["name"]
+
+
+
+def test_sweep_depth_reads_a_true_mesh_as_right_and_keeps_it(tiny_scene, tmp_path, capsys):
+    """`tools/sweep_depth.py` on the scene's own ground-truth mesh: the mesh's depth errors are
+    a fraction of a unit (the depth map is unbiased); the table has a row per feature asked
+    and the open surface; a bad patch is one line. (At 64x48 a 5x5 patch spans a fifth of the
+    object: the sweep's own answer is not judged here; `tests/mesh/test_photo_carve.py` does.)"""
+    tool = _tool("sweep_depth")
+    feats = json.loads((tiny_scene / "features.json").read_text())["features"]
+    name = feats[0]["name"]
+    out = tmp_path / "t.json"
+    assert tool.main([str(tiny_scene), str(tiny_scene / "gt_mesh.ply"), "--features", name,
+                      "--open", "200", "--max-pixels", "200", "--behind", "2",
+                      "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["feature"] for r in rows] == [name, "open surface"]
+    open_row = rows[1]
+    assert open_row["pixels"] > 100 and open_row["mesh_median_abs"] < 0.5
+    assert abs(open_row["mesh_median"]) < 0.2
+    assert "| open surface |" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="--patch 4"):
+        tool.main([str(tiny_scene), str(tiny_scene / "gt_mesh.ply"), "--patch", "4"])
