@@ -48,11 +48,12 @@ REACH_PX = 24.0
 """How far behind the mesh the sweep reaches, in pixel footprints."""
 BEFORE_PX = 2.0
 """How far in front of the mesh the sweep starts, in pixel footprints."""
-STEP_PX = 0.5
+STEP_PX = 1.0
 """The sweep's depth step, in pixel footprints."""
-PATCH = 5
-"""Side of the square patch, in pixels."""
-BEST = 2
+PATCH = 7
+"""Side of the square patch, in pixels (7 x 7 and 3 views put 33 % of the carving rays'
+ends more than a unit inside the cup's true surface, 5 x 5 and 2 views 48 %; session 22)."""
+BEST = 3
 """How many views count at each depth: those that agree best."""
 MARGIN_PX = 2.0
 """A best depth this many footprints or more behind the mesh carves."""
@@ -62,7 +63,7 @@ MIN_GAIN = 0.1
 """... and lower than the cost at the mesh's depth by this much."""
 MIN_VIEWS = 2
 """Views whose carving rays a grid point must lie on."""
-STRIDE = 2
+STRIDE = 3
 """Candidate pixels are taken on every STRIDE-th row and column."""
 INVALID = 2.0
 """Cost of a view that cannot score a patch (above any real cost, at most 1)."""
