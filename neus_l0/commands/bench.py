@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         psnr_pixels=args.psnr_pixels, backend=args.backend, timeout=args.timeout,
         snapshots=args.snapshots, planned=args.plan, close_underside=args.close_underside,
         drop_outside_masks=args.drop_outside_masks, inset=args.inset,
-        fill_missed=args.fill_missed)
+        fill_missed=args.fill_missed, photo_carve=args.photo_carve)
     check_spec(spec)
     check_output_dir(args.out, "--out", ("sweep.json",), SWEEP_NAMES, "a bench folder")
     chosen = [f"--{k.replace('_', '-')} {getattr(spec, k)}" for k in device_defaults(spec.device)

@@ -108,6 +108,8 @@ class RunSpec:
             too).
         fill_missed: fill the parts the masks see and each mesh misses (`neus-l0 mesh
             --fill-missed`; snapshots too).
+        photo_carve: carve the free space a plane sweep finds behind each mesh (`neus-l0
+            mesh --photo-carve`; snapshots too).
     """
 
     name: str
@@ -134,6 +136,7 @@ class RunSpec:
     drop_outside_masks: bool = False
     inset: float = 0.0
     fill_missed: bool = False
+    photo_carve: bool = False
 
     @property
     def run_dir(self) -> Path:
@@ -145,7 +148,7 @@ class RunSpec:
         from neus_l0.mesh.from_run import MeshSteps
 
         return MeshSteps(self.close_underside, self.drop_outside_masks, self.inset,
-                         self.fill_missed)
+                         self.fill_missed, self.photo_carve)
 
     def run_overrides(self) -> list[str]:
         """The bench's settings, the user's overrides, then the run's own (which win).

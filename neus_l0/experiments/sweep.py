@@ -53,7 +53,7 @@ SWEEP_NAMES = ("sweep.json", "runs", "scenes", "plots", "results.csv", "results.
 SHARED_KEYS = ("config", "views", "width", "height", "holdout", "device",
                "threads", "resolution", "eval_density", "sample_rays", "psnr_pixels",
                "snapshots", "planned", "close_underside",
-               "drop_outside_masks", "inset", "fill_missed")
+               "drop_outside_masks", "inset", "fill_missed", "photo_carve")
 
 
 @dataclasses.dataclass
@@ -233,6 +233,8 @@ class SweepSpec:
         inset: mesh each run at the level -inset/s (`RunSpec.inset`).
         fill_missed: fill the parts the masks see and each mesh misses
             (`RunSpec.fill_missed`).
+        photo_carve: carve the free space a plane sweep finds behind each mesh
+            (`RunSpec.photo_carve`).
     """
 
     out_dir: str | Path
@@ -260,6 +262,7 @@ class SweepSpec:
     drop_outside_masks: bool = False
     inset: float = 0.0
     fill_missed: bool = False
+    photo_carve: bool = False
 
     def __post_init__(self):
         for key, value in device_defaults(self.device).items():
@@ -282,6 +285,7 @@ class SweepSpec:
             **({"drop_outside_masks": True} if self.drop_outside_masks else {}),
             **({"inset": self.inset} if self.inset else {}),
             **({"fill_missed": True} if self.fill_missed else {}),
+            **({"photo_carve": True} if self.photo_carve else {}),
         }
 
     def run_spec(self, scene: str, folder: Path, sampler: str, budget: float, seed: int,
@@ -298,7 +302,7 @@ class SweepSpec:
                        snapshots=snapshot_marks(float(budget), self.snapshots),
                        close_underside=self.close_underside,
                        drop_outside_masks=self.drop_outside_masks, inset=self.inset,
-                       fill_missed=self.fill_missed)
+                       fill_missed=self.fill_missed, photo_carve=self.photo_carve)
 
 
 def plan_runs(spec: SweepSpec, resolved: Sequence[tuple[str, Path]],

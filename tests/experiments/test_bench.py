@@ -137,24 +137,28 @@ def test_other_settings_on_the_same_folder_are_refused(sweep):
 
 
 def test_the_mesh_steps_are_settings_of_the_sweep_and_of_each_run(sweep, tmp_path):
-    """`bench --close-underside`, `--drop-outside-masks`, `--inset` and `--fill-missed` reach
-    every run's spec, are recorded in sweep.json, and a folder meshed one way refuses the
-    other."""
+    """`bench --close-underside`, `--drop-outside-masks`, `--inset`, `--fill-missed` and
+    `--photo-carve` reach every run's spec, are recorded in sweep.json, and a folder meshed one
+    way refuses the other."""
     out, _ = sweep
     spec = sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET], [0], close_underside=True,
-                      drop_outside_masks=True, inset=0.5, fill_missed=True)
+                      drop_outside_masks=True, inset=0.5, fill_missed=True,
+                      photo_carve=True)
     assert spec.settings({})["close_underside"] is True
+    assert spec.settings({})["photo_carve"] is True
     assert spec.settings({})["fill_missed"] is True
     assert spec.settings({})["drop_outside_masks"] is True
     assert spec.settings({})["inset"] == 0.5
     plain = sweep_spec(tmp_path / "s", ["demo"], ["l0"], [BUDGET], [0]).settings({})
     assert "close_underside" not in plain and "inset" not in plain
-    assert "fill_missed" not in plain
+    assert "fill_missed" not in plain and "photo_carve" not in plain
     run = spec.run_spec("demo", tmp_path, "l0", BUDGET, 0, {})
     assert run.close_underside is True and run.drop_outside_masks is True
     assert run.mesh_steps.inset == 0.5 and run.mesh_steps.needs_masks
     assert run.fill_missed is True and run.mesh_steps.fill_missed
-    for steps in ({"close_underside": True}, {"inset": 0.5}, {"fill_missed": True}):
+    assert run.photo_carve is True and run.mesh_steps.photo_carve
+    for steps in ({"close_underside": True}, {"inset": 0.5}, {"fill_missed": True},
+                  {"photo_carve": True}):
         with pytest.raises(NeusL0Error, match="other settings"):
             run_sweep(sweep_spec(out, [str(out / "scenes" / "demo")], ["hvs"], [BUDGET], [0],
                                  **steps), progress=False)
