@@ -105,9 +105,10 @@ def mesh_from_run(run_dir: str | Path, resolution: int, device: str | torch.devi
             scene with masks.
 
     Raises:
-        NeusL0Error: no usable checkpoint, or no surface in the field; with
-            `close_underside` or `drop_outside_masks`, the run's scene or a training view's
-            mask missing (`training_views`).
+        NeusL0Error: no usable checkpoint, or no surface in the field; with a step that
+            reads the masks (`MeshSteps.needs_masks`), the run's scene or a training view's
+            mask missing (`training_views`); with `photo_carve`, a training view's image
+            missing or unreadable (`training_grays`).
     """
     model, cfg, info = load_trained_model(run_dir, device, checkpoint)
     scale_mat = np.asarray(info["scale_mat"], dtype=np.float64)
@@ -196,7 +197,8 @@ def training_views(run_dir: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
     missing = [v for v in train if v not in masks]
     if missing:
         raise NeusL0Error(f"{scene / 'mask'}: no mask for training view(s) {missing[:5]}; "
-                          "--close-underside and --drop-outside-masks need the masks")
+                          "--close-underside, --drop-outside-masks, --fill-missed and "
+                          "--photo-carve need the masks")
     return projections[train], [masks[v] for v in train]
 
 
