@@ -11,7 +11,8 @@ knows which do). The depth of least cost is the sweep's answer. Prints, per feat
 median |depth - true depth| of the mesh and of the sweep, the signed medians, and the share
 of pixels each puts within `--tol` of the truth; with `--open` the same for as many pixels
 of the surface outside every feature's balls (where the mesh is right, a sweep should not
-move it).
+move it). The defaults (5x5, best 2) are the first measurement's; `--photo-carve` sweeps with
+`neus_l0.mesh.photo_carve.PATCH` and `BEST`.
 
     python tools/sweep_depth.py SCENE MESH [--features "cavity floor"] [--open 500]
         [--max-pixels 1000] [--before 4] [--behind 20] [--step 0.25] [--patch 5] [--best 2]
@@ -25,37 +26,27 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 import trimesh
 
 from neus_l0.atomic import atomic_write_json
+from neus_l0.data.cameras import read_grays
 from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.mesh.photo_carve import INVALID, depth_map, sample_count, sweep_depths
 from neus_l0.mesh.raster import finest_footprint
 
-LUMA = (0.114, 0.587, 0.299)  # OpenCV's BGR order
-
-
-def gray_images(root: Path, n: int) -> np.ndarray:
-    """(V, H, W) float32 grey values in [0, 1] of the scene's ``image/*.png``."""
-    files = sorted((root / "image").glob("*.png"))
-    if len(files) != n:
-        raise SystemExit(f"{root / 'image'}: {len(files)} PNGs for {n} cameras")
-    out = []
-    for f in files:
-        im = cv2.imread(str(f), cv2.IMREAD_COLOR)
-        if im is None:
-            raise SystemExit(f"{f}: unreadable PNG")
-        out.append((im.astype(np.float32) / 255.0) @ np.asarray(LUMA, np.float32))
-    return np.stack(out)
-
 
 def table(root: Path, mesh_path: Path, names: list[str] | None, n_open: int, a) -> list[dict]:
+    """One row per feature in `names` (all when None), and the open surface when `n_open`:
+    the pixels counted and the mesh's and the sweep's depth errors (medians, signed medians,
+    shares within ``a.tol``). ``a`` holds the sweep's settings (`main`'s arguments)."""
     pts, depth, P = first_hits(root)
-    gray = torch.as_tensor(gray_images(root, len(P)))
+    grays = read_grays(root)
+    if sorted(grays) != list(range(len(P))):
+        raise SystemExit(f"{root / 'image'}: views {sorted(grays)[:5]}... for {len(P)} cameras")
+    gray = torch.as_tensor(np.stack([grays[v] for v in range(len(P))]))
     mesh = trimesh.load(mesh_path, process=False)
     foot = finest_footprint(mesh, P)
     samples, face = trimesh.sample.sample_surface(mesh, sample_count(mesh, foot), seed=0)

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from neus_l0.data.image_io import imread_bytes
+from neus_l0.data.patches import LUMA
 from neus_l0.data.views import indexed_files
 from neus_l0.errors import NeusL0Error
 
@@ -370,6 +371,27 @@ def read_world_mats(scene_dir: str | Path) -> np.ndarray:
     return out
 
 
+def indexed_images(scene_dir: str | Path, name: str) -> dict[int, np.ndarray]:
+    """The images of the folder ``scene_dir/name`` by view index (`neus_l0.data.views`), as
+    decoded (any depth and channels).
+
+    Raises:
+        NeusL0Error: no such folder or no files, a file without a view number, two files of
+            one view, or an unreadable image (each named).
+    """
+    folder = Path(scene_dir) / name
+    files = indexed_files(folder) if folder.is_dir() else {}
+    if not files:
+        raise NeusL0Error(f"{folder}: no {name} files")
+    out = {}
+    for i, f in files.items():
+        img = imread_bytes(Path(f), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise NeusL0Error(f"{f}: cannot read image")
+        out[i] = img
+    return out
+
+
 def read_masks(scene_dir: str | Path) -> dict[int, np.ndarray]:
     """Foreground masks ``mask/*`` by view index (`neus_l0.data.views`; > 127 = foreground).
 
@@ -380,28 +402,14 @@ def read_masks(scene_dir: str | Path) -> dict[int, np.ndarray]:
         NeusL0Error: no mask folder/files, a file without a view number, two files of one
             view, or an unreadable image.
     """
-    folder = Path(scene_dir) / "mask"
-    files = indexed_files(folder) if folder.is_dir() else {}
-    if not files:
-        raise NeusL0Error(f"{folder}: no mask files")
-    masks = {}
-    for i, f in files.items():
-        img = imread_bytes(Path(f), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise NeusL0Error(f"{f}: cannot read image")
-        if img.ndim == 3:
-            img = img[..., :3].max(axis=-1)
-        masks[i] = img > 127
-    return masks
-
-
-LUMA_BGR = (0.114, 0.587, 0.299)
-"""Rec. 601 luma weights in OpenCV's channel order (blue, green, red)."""
+    return {i: (img[..., :3].max(axis=-1) if img.ndim == 3 else img) > 127
+            for i, img in indexed_images(scene_dir, "mask").items()}
 
 
 def read_grays(scene_dir: str | Path) -> dict[int, np.ndarray]:
-    """Grey images ``image/*`` by view index (`neus_l0.data.views`), Rec. 601 luma of the
-    colour in [0, 1] (8- or 16-bit; an alpha channel is ignored).
+    """Grey images ``image/*`` by view index (`neus_l0.data.views`): the luma
+    (`neus_l0.data.patches.LUMA`) of the colour in [0, 1] (8- or 16-bit; an alpha channel
+    is ignored).
 
     Returns:
         {view index: (H, W) float32}, in index order.
@@ -409,20 +417,10 @@ def read_grays(scene_dir: str | Path) -> dict[int, np.ndarray]:
     Raises:
         NeusL0Error: no image folder/files, or an unreadable image.
     """
-    folder = Path(scene_dir) / "image"
-    files = indexed_files(folder) if folder.is_dir() else {}
-    if not files:
-        raise NeusL0Error(f"{folder}: no image files")
+    bgr = np.asarray(LUMA[::-1], np.float32)  # OpenCV's channel order
     grays = {}
-    for i, f in files.items():
-        img = imread_bytes(Path(f), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise NeusL0Error(f"{f}: cannot read image")
+    for i, img in indexed_images(scene_dir, "image").items():
         scale = 65535.0 if img.dtype == np.uint16 else 255.0
         img = img.astype(np.float32) / np.float32(scale)
-        if img.ndim == 2:
-            grays[i] = img
-        else:
-            grays[i] = img[..., :3] @ np.asarray(LUMA_BGR, np.float32)
+        grays[i] = img if img.ndim == 2 else img[..., :3] @ bgr
     return grays
-

@@ -28,11 +28,10 @@ import torch
 from torch import Tensor
 
 from neus_l0.config.schema import PhotoConfig
+from neus_l0.data.patches import LUMA, ncc
 from neus_l0.data.scene import Scene
 from neus_l0.errors import NeusL0Error
 
-#: Rec. 601 luma weights of the grey image the patches compare.
-LUMA = (0.299, 0.587, 0.114)
 #: Where the occlusion test starts past a surface point (normalised frame, about a cell of
 #: the demo's finest hash level): it skips the point's own surface.
 OCCLUSION_START = 0.03
@@ -206,25 +205,6 @@ def sample_gray(gray: Tensor, height: int, width: int, view: Tensor,
     top = at(y0, x0) * (1 - fx) + at(y0, x1) * fx
     bottom = at(y1, x0) * (1 - fx) + at(y1, x1) * fx
     return top * (1 - fy) + bottom * fy, inside
-
-
-def ncc(ref: Tensor, src: Tensor, eps: float = 1e-4) -> Tensor:
-    """Normalised cross-correlation of patches.
-
-    Args:
-        ref: (B, P) reference patches; src: (B, M, P) source patches.
-        eps: added to both variances (flat patches score near 0, not noise).
-
-    Returns:
-        (B, M) in [-1, 1]: 1 where a source patch is an increasing affine map of the
-        reference (a + b ref, b > 0), given textured patches.
-    """
-    r = ref - ref.mean(-1, keepdim=True)
-    s = src - src.mean(-1, keepdim=True)
-    cov = (r[:, None, :] * s).mean(-1)
-    var_r = (r * r).mean(-1)[:, None]
-    var_s = (s * s).mean(-1)
-    return cov / torch.sqrt((var_r + eps) * (var_s + eps))
 
 
 def best_cost(cost: Tensor, valid: Tensor, k: int) -> tuple[Tensor, Tensor]:

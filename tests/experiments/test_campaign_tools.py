@@ -468,7 +468,7 @@ def test_the_stool_and_its_features_agree_in_synths_frame(tmp_path):
 
 
 
-def test_sweep_depth_reads_a_true_mesh_as_right_and_keeps_it(tiny_scene, tmp_path, capsys):
+def test_sweep_depth_reads_a_true_mesh_as_right(tiny_scene, tmp_path, capsys):
     """`tools/sweep_depth.py` on the scene's own ground-truth mesh: the mesh's depth errors are
     a fraction of a unit (the depth map is unbiased); the table has a row per feature asked
     and the open surface; a bad patch is one line. (At 64x48 a 5x5 patch spans a fifth of the

@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 import trimesh
 from hypothesis import given, settings
@@ -15,6 +16,7 @@ from hypothesis import strategies as st
 
 from neus_l0.cli import main
 from neus_l0.data.cameras import depth_projection, pixel_indices
+from neus_l0.errors import NeusL0Error
 from neus_l0.mesh import photo_carve as pc
 from neus_l0.mesh.missed_parts import GridSolid
 
@@ -168,3 +170,14 @@ def test_the_command_reports_what_it_carved_and_names_a_missing_image(run_copy, 
                  "--out", str(out), "--quiet", "--threads", "1"]) != 0
     err = capsys.readouterr().err
     assert "Traceback" not in err and f"{copy / 'image'}: no image for training view" in err
+
+
+def test_images_that_do_not_match_the_masks_are_refused(plane_views):
+    """Images of another size than the masks (or one short) are named, never swept."""
+    P, gray = plane_views
+    box = trimesh.creation.box(extents=(20, 20, 20))
+    masks = [np.ones(gray.shape[1:], bool) for _ in range(len(P))]
+    with pytest.raises(NeusL0Error, match="--photo-carve: 5 images of .* must match"):
+        pc.carve_solid(box, P, masks, gray[:, :-1], np.diag([40.0, 40, 40, 1]), 64)
+    with pytest.raises(NeusL0Error, match="4 images"):
+        pc.carve_solid(box, P, masks, gray[:4], np.diag([40.0, 40, 40, 1]), 64)

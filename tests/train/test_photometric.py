@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import PhotoConfig
+from neus_l0.data.patches import ncc
 from neus_l0.data.scene import Scene
 from neus_l0.errors import ConfigError, NeusL0Error
 from neus_l0.fields.encodings import HashGridEncoding
@@ -23,7 +24,6 @@ from neus_l0.train.photometric import (
     PhotoContext,
     PhotoRays,
     best_cost,
-    ncc,
     nearest_views,
     normal_fallback,
     normal_views,
