@@ -162,8 +162,15 @@ class ScheduleWarp:
 
     def retarget(self, iteration: int, end: int) -> ScheduleWarp:
         """The map that is unchanged up to `iteration` and reaches `base` at `end`."""
-        knots = (*[k for k in self.knots if k[0] < iteration], (iteration, self.at(iteration)))
-        return ScheduleWarp(self.base, max(end, iteration + 1), knots)
+        return ScheduleWarp(self.base, max(end, iteration + 1), self._bent_at(iteration))
+
+    def ended(self, iteration: int) -> ScheduleWarp:
+        """The map of a run that ends at `iteration` (a budget's deadline stopped it there):
+        unchanged before it, with the run's end at it, so that a resume finds it finished."""
+        return ScheduleWarp(self.base, iteration, self._bent_at(iteration))
+
+    def _bent_at(self, iteration: int) -> tuple[tuple[int, float], ...]:
+        return (*[k for k in self.knots if k[0] < iteration], (iteration, self.at(iteration)))
 
     def to_dict(self) -> dict:
         return {"base": self.base, "end": self.end, "knots": [list(k) for k in self.knots]}

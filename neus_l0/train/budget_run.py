@@ -18,6 +18,7 @@ import time
 
 from neus_l0.atomic import atomic_write_json
 from neus_l0.errors import NeusL0Error
+from neus_l0.run.checkpoints import checkpoint_path
 from neus_l0.train.budget import (
     RESERVE_S,
     Plan,
@@ -109,6 +110,7 @@ class BudgetKeeper(TrainingCallback):
         self.marks: list[tuple[float, int]] = []
         self.retargets: list[dict] = []
         self.said = 0  # the end the last printed re-target set
+        self.deadline: int | None = None  # the iteration the deadline stopped the run at
         self.run: RunState | None = None
 
     def spent(self) -> float:
@@ -153,8 +155,19 @@ class BudgetKeeper(TrainingCallback):
     def after_step(self, run: RunState) -> None:
         if self.left_for_steps() <= 0 and run.iteration < run.end:
             run.stop_requested = True
+            self.deadline = run.iteration
 
     def on_end(self, run: RunState) -> None:
+        """Write budget.json; a run the deadline stopped ends there: its schedule's end
+        moves to the stop (``"deadline": true`` in the re-targets) and its last checkpoint
+        holds that, so that a re-run reuses it as finished. A run a signal stopped keeps
+        its end and resumes."""
+        if self.deadline is not None and self.deadline == run.iteration < run.end:
+            self.retargets.append({"iter": run.iteration, "end": run.iteration,
+                                   "was": run.end, "deadline": True})
+            run.setup.warp = run.setup.warp.ended(run.iteration)
+            if run.last_checkpoint == checkpoint_path(run.run_dir, run.iteration):
+                run.save()  # written before the schedule ended: again, with the end
         self._write(run, run.iteration)
 
     def _write(self, run: RunState, done: int | None) -> None:

@@ -106,6 +106,14 @@ def test_the_warp_is_continuous_and_ends_the_schedule():
     assert lr_factor(again.at(600), 10, 1000, 0.05) == pytest.approx(0.05)
 
 
+def test_an_ended_warp_keeps_the_map_before_its_end():
+    short = ScheduleWarp(1000, 1000).retarget(400, 700)
+    ended = short.ended(650)
+    assert ended.end == 650 and ended.warped
+    assert [ended.at(i) for i in range(651)][:650] == [short.at(i) for i in range(650)]
+    assert ended.at(650) == 1000 and ScheduleWarp.from_dict(ended.to_dict()) == ended
+
+
 def test_retarget_only_when_the_rest_overruns_or_leaves_time_unused():
     assert retarget_end(100, 1000, left_s=95.0, step_s=0.1, spare_s=4.0) is None  # 90 s fits
     assert retarget_end(100, 1000, 45.0, 0.1, 4.0) == 100 + int(41 / 0.1)
@@ -181,6 +189,36 @@ def test_resume_and_rerun_reproduce_the_recorded_schedule(small, scene, tmp_path
     b = load_checkpoint(latest_checkpoint(tmp_path / "b"))
     for k in a["model"]:
         assert torch.equal(a["model"][k], b["model"][k]), k
+
+
+def test_a_run_its_deadline_stopped_is_finished_on_resume(
+        small, scene, tmp_path, monkeypatch):
+    """The deadline stops the run at iteration 4 of a longer plan: its checkpoint ends the
+    schedule there, so a re-run (a resume) trains nothing; budget.json says why."""
+    import json
+
+    from neus_l0.train import budget_run
+
+    real = budget_run.measure_costs
+    monkeypatch.setattr(budget_run, "measure_costs",
+                        lambda run, seconds: (real(run, seconds=0.05), StepCosts(10.0))[1])
+    monkeypatch.setattr(budget_run.BudgetKeeper, "left_for_steps",
+                        lambda self: 1.0 if self.run.iteration < 4 else 0.0)
+    cfg = load_config("demo", small + ["train.budget=300", "train.compile=false",
+                                       "train.save_every=2"])
+    first = train(scene, cfg, tmp_path / "a", progress=False)
+    recorded = load_config(tmp_path / "a" / "config.yaml")
+    assert first.stopped_early and first.iteration == 4 < recorded.train.iters
+    kept = json.loads((tmp_path / "a" / "budget.json").read_text())
+    assert kept["done_iters"] == 4 and kept["retargets"][-1] == {
+        "iter": 4, "end": 4, "was": recorded.train.iters, "deadline": True}
+    before = load_checkpoint(latest_checkpoint(tmp_path / "a"))
+    again = train(scene, recorded, tmp_path / "a", resume=True, progress=False)
+    assert again.iteration == 4 and not again.stopped_early
+    after = load_checkpoint(latest_checkpoint(tmp_path / "a"))
+    assert after["iteration"] == 4 and after["schedule"]["end"] == 4
+    for k in before["model"]:
+        assert torch.equal(before["model"][k], after["model"][k]), k
 
 
 def test_a_budget_on_resume_is_refused(small, scene, tmp_path):
