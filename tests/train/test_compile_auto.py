@@ -239,7 +239,8 @@ def test_a_fresh_demo_decides_compiling_on_a_timed_step(small, monkeypatch, tmp_
     from neus_l0.cli import main
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
+    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30,
+                                             "point_spacing": 2.0, "gt_voxel": 4.0})
     out = tmp_path / "demo"
     # long enough to be worth timing (`worth_measuring`), too short to repay a compile
     argv = ["demo", "--out", str(out), "--resolution", "32", "--threads", "1", "--quiet",

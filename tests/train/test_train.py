@@ -268,7 +268,8 @@ def _tiny_demo(small, monkeypatch, tmp_path, iters):
     import neus_l0.pipelines.demo as demo
     from neus_l0.cli import main
 
-    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
+    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30,
+                                             "point_spacing": 2.0, "gt_voxel": 4.0})
     out = tmp_path / "demo"
     rc = main(["demo", "--out", str(out), "--quiet", "--resolution", "40",
                *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
@@ -294,7 +295,8 @@ def test_demo_rerun_with_another_sampler_is_refused_not_mislabelled(small, monke
 
     _tiny_demo(small, monkeypatch, tmp_path, 3)
     capsys.readouterr()
-    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30})
+    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30,
+                                             "point_spacing": 2.0, "gt_voxel": 4.0})
     rc = main(["demo", "--out", str(tmp_path / "demo"), "--quiet", "--resolution", "40",
                *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
                "train.iters=5", "train.val_every=0", "sampler=hvs"])
