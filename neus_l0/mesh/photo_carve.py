@@ -274,8 +274,9 @@ def free_votes(points: np.ndarray, projections: np.ndarray,
 
 
 def concave_pixels(samples: np.ndarray, normals: np.ndarray, vertices: np.ndarray,
-                   projection: np.ndarray, mask: np.ndarray, foot: float) -> tuple | None:
-    """One view's pixels to sweep: every `STRIDE`-th row and column inside the mask, where
+                   projection: np.ndarray, mask: np.ndarray, foot: float,
+                   stride: int = STRIDE) -> tuple | None:
+    """One view's pixels to sweep: every `stride`-th row and column inside the mask, where
     the mesh (its surface samples (n, 3) with normals (n, 3), and its vertices (M, 3)) is
     seen `CONCAVE_PX` footprints or more inside its convex hull.
 
@@ -285,7 +286,7 @@ def concave_pixels(samples: np.ndarray, normals: np.ndarray, vertices: np.ndarra
     """
     depth, nrm = depth_map(samples, normals, projection, mask.shape, foot)
     pick = np.zeros(mask.shape, bool)
-    pick[::STRIDE, ::STRIDE] = True
+    pick[::stride, ::stride] = True
     ys, xs = np.nonzero(pick & mask & np.isfinite(depth))
     if not len(xs):
         return None

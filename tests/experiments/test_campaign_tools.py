@@ -1,6 +1,7 @@
 """`tools/budget_frontier.py` and `tools/pair_features.py` on hand-made bench folders: the
 seed-wise merge of several folders, the equal-time comparison, and the paired sign test
-over folders that two chains filled side by side; `tools/make_stool.py`'s object."""
+over folders that two chains filled side by side; `tools/make_stool.py`'s object; the
+sweep tools' pooling and end-to-end paths."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 TOOLS = Path(__file__).resolve().parents[2] / "tools"
 
@@ -488,3 +492,35 @@ def test_sweep_depth_reads_a_true_mesh_as_right(tiny_scene, tmp_path, capsys):
     assert "| open surface |" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="--patch 4"):
         tool.main([str(tiny_scene), str(tiny_scene / "gt_mesh.ply"), "--patch", "4"])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_carve_consensus_pools_each_cell_as_a_plain_loop_does(seed):
+    tool = _tool("carve_consensus")
+    g = np.random.default_rng(seed)
+    n = int(g.integers(1, 60))
+    keys = tool.cell_keys(g.uniform(-20, 20, (n, 3)), g.normal(size=(n, 3)), 10.0)
+    h, views = g.normal(2, 3, n), g.integers(0, 3, n)
+    med, agree, count = tool.consensus(keys, h, views, 1.5)
+    for i in range(n):
+        same = [j for j in range(n) if (keys[j] == keys[i]).all()]
+        m = float(np.median(h[same]))
+        assert med[i] == pytest.approx(m)
+        assert agree[i] == pytest.approx(np.mean([abs(h[j] - m) <= 1.5 for j in same]))
+        assert count[i] == (len(same) if len({int(views[j]) for j in same}) >= 2 else 0)
+
+
+def test_carve_consensus_runs_on_a_scene_and_writes_its_table(tiny_scene, tmp_path, capsys):
+    """End to end on the tiny scene's own ground-truth mesh (at 64x48 the sweep's answers are
+    not judged: `tests/mesh/test_photo_carve.py` does that)."""
+    tool = _tool("carve_consensus")
+    out = tmp_path / "c.json"
+    assert tool.main([str(tiny_scene), str(tiny_scene / "gt_mesh.ply"), "--every", "4",
+                      "--out", str(out)]) == 0
+    assert "pass 1:" in capsys.readouterr().out
+    rows = json.loads(out.read_text())["rows"]
+    assert all(set(r) == {"feature", "rays", "overshoot", "mesh_in_front", "sweep_minus_truth"}
+               for r in rows)
+    with pytest.raises(SystemExit, match="carve_consensus"):
+        tool.main([str(tmp_path / "none"), str(tiny_scene / "gt_mesh.ply")])

@@ -1,0 +1,161 @@
+"""Would carving only where a neighbourhood's sweeps agree leave the right surface alone?
+(issue #35, outside training)
+
+`neus-l0 mesh --photo-carve` carves ray by ray, and on the cup a third of its carving rays
+end more than a unit inside the true surface. This measures a two-pass alternative. Pass 1
+sweeps the concave pixels (`neus_l0.mesh.photo_carve.concave_pixels`, every 3rd row and
+column) of every `--every`-th view, as `--photo-carve` does. Each ray's displacement along
+the mesh normal, h = (best depth - mesh depth) |ray . n|, is pooled in cells of `--cell`
+world units (the mesh point's cell and its normal's dominant signed axis; `consensus`).
+A cell is flagged when it holds 3 rays or more from 2 views or more, its median h is at
+least `MARGIN_PX` footprints, and 30 % of its rays lie within 2 footprints of that median.
+Pass 2 sweeps every concave pixel of every view whose mesh point falls in a flagged cell.
+A ray would carve when its cell (now dense) holds `--min-rays` from 2 views, `--agree` of
+them within 2 footprints of the median, the median is at least `MARGIN_PX` footprints, the
+ray itself lies within 2 footprints of the median, and its cost is below `MAX_COST`.
+
+Prints, per feature of ``features.json`` (and "elsewhere"), the rays that would carve, the
+share ending more than a unit inside the true surface, how far the mesh lies in front of
+the truth on them and where the sweep ends (median best depth - true depth).
+
+    python tools/carve_consensus.py SCENE MESH [--every 3] [--cell 10] [--min-rays 8]
+        [--agree 0.3] [--out c.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from neus_l0.atomic import atomic_write_json
+from neus_l0.data.cameras import read_grays, read_masks
+from neus_l0.errors import NeusL0Error
+from neus_l0.evaluation.synthetic import first_hits
+from neus_l0.mesh import photo_carve as pc
+from neus_l0.mesh.raster import finest_footprint
+
+
+def cell_keys(points: np.ndarray, normals: np.ndarray, cell: float) -> np.ndarray:
+    """(N, 4) int keys: the points' (N, 3) cell of side `cell`, and the normals' (N, 3)
+    dominant axis with its sign (0-5)."""
+    axis = np.argmax(np.abs(normals), 1)
+    sign = normals[np.arange(len(normals)), axis] > 0
+    return np.column_stack([np.floor(points / cell).astype(np.int64), axis * 2 + sign])
+
+
+def consensus(keys: np.ndarray, h: np.ndarray, views: np.ndarray, tol: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per ray, its cell's median displacement, the share of the cell's rays within `tol`
+    of that median, and the cell's ray count (0 when they come from fewer than 2 views).
+
+    Args:
+        keys: (N, k) int cell keys (`cell_keys`); h: (N,) displacements; views: (N,) the
+            rays' views.
+    """
+    _, cell = np.unique(keys, axis=0, return_inverse=True)
+    cell = cell.reshape(-1)
+    med, agree, count = np.empty(len(h)), np.empty(len(h)), np.zeros(len(h))
+    for c in np.unique(cell):
+        idx = np.flatnonzero(cell == c)
+        m = np.median(h[idx])
+        med[idx] = m
+        agree[idx] = np.mean(np.abs(h[idx] - m) <= tol)
+        count[idx] = len(idx) if len(np.unique(views[idx])) >= 2 else 0
+    return med, agree, count
+
+
+def sweep_views(data: dict, views, stride: int, cells: set | None, cell: float) -> np.ndarray:
+    """(N, 15) per swept ray of `views` (every `stride`-th pixel; only those whose mesh
+    point lies in `cells`, when given): its view, the mesh's depth, the best depth, its cost,
+    the true depth, the true hit (3), the mesh point (3), the mesh normal (3) and the
+    displacement h along it."""
+    rows = []
+    for v in views:
+        found = pc.concave_pixels(data["samples"], data["normals"], data["verts"],
+                                  data["P"][v], data["masks"][v], data["foot"], stride)
+        if found is None:
+            continue
+        pix, centre, rays, z0, n = found
+        M = centre + rays * z0[:, None]
+        if cells is not None:
+            keep = np.array([tuple(k) in cells for k in cell_keys(M, n, cell)], bool)
+            if not keep.any():
+                continue
+            pix, rays, z0, n, M = pix[keep], rays[keep], z0[keep], n[keep], M[keep]
+        zb, cb, _ = pc.sweep_depths(data["gray"], data["P"], v, pix, n, z0, data["offsets"])
+        h = (zb - z0) * np.abs((rays * n).sum(1))
+        truth = data["depth"][v][pix[:, 1], pix[:, 0]]
+        X = data["pts"][v][pix[:, 1], pix[:, 0]]
+        rows.append(np.column_stack([np.full(len(z0), v), z0, zb, cb, truth, X, M, n, h]))
+    return np.concatenate(rows) if rows else np.zeros((0, 15))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene", type=Path, help="a synthetic scene folder (neus-l0 synth)")
+    ap.add_argument("mesh", type=Path, help="a mesh in world units (neus-l0 mesh)")
+    ap.add_argument("--every", type=int, default=3, help="pass 1 sweeps every N-th view")
+    ap.add_argument("--cell", type=float, default=10.0, help="cell side, world units")
+    ap.add_argument("--min-rays", type=int, default=8)
+    ap.add_argument("--agree", type=float, default=0.3)
+    ap.add_argument("--out", type=Path, help="also write the table as JSON")
+    a = ap.parse_args(argv)
+    try:
+        pts, depth, P = first_hits(a.scene)
+        masks, grays = read_masks(a.scene), read_grays(a.scene)
+    except NeusL0Error as exc:
+        raise SystemExit(f"carve_consensus: {exc}") from None
+    mesh = trimesh.load(a.mesh, process=False)
+    foot = finest_footprint(mesh, P)
+    samples, face = trimesh.sample.sample_surface(mesh, pc.sample_count(mesh, foot), seed=0)
+    data = {"pts": pts, "depth": depth, "P": P, "foot": foot, "samples": samples,
+            "normals": np.asarray(mesh.face_normals)[face],
+            "verts": np.asarray(mesh.vertices, np.float64),
+            "masks": [masks[v] for v in range(len(P))],
+            "gray": torch.as_tensor(np.stack([grays[v] for v in range(len(P))])),
+            "offsets": np.arange(-pc.BEFORE_PX, pc.REACH_PX + 1e-9, pc.STEP_PX) * foot}
+    tol, margin = 2 * foot, pc.MARGIN_PX * foot
+    first = sweep_views(data, range(0, len(P), a.every), pc.STRIDE, None, a.cell)
+    ok = first[:, 3] < pc.INVALID
+    keys = cell_keys(first[ok, 8:11], first[ok, 11:14], a.cell)
+    med, agree, count = consensus(keys, first[ok, 14], first[ok, 0], tol)
+    flagged = {tuple(k) for k in keys[(count >= 3) & (med >= margin) & (agree >= 0.3)]}
+    dense = sweep_views(data, range(len(P)), 1, flagged, a.cell)
+    dense = dense[dense[:, 3] < pc.INVALID]
+    med, agree, count = consensus(cell_keys(dense[:, 8:11], dense[:, 11:14], a.cell),
+                                  dense[:, 14], dense[:, 0], tol)
+    _, z0, zb, cb, truth = dense[:, :5].T
+    carve = ((count >= a.min_rays) & (agree >= a.agree) & (med >= margin)
+             & (np.abs(dense[:, 14] - med) <= tol) & (cb < pc.MAX_COST) & np.isfinite(truth))
+    rows, left = [], carve.copy()
+    feats = json.loads((a.scene / "features.json").read_text())["features"]
+    for name, inside in [(f["name"], np.linalg.norm(dense[:, 5:8] - f["center"], axis=1)
+                          <= f["radius"]) for f in feats] + [("elsewhere", None)]:
+        k = left & inside if inside is not None else left
+        left &= ~k
+        if k.any():
+            rows.append({"feature": name, "rays": int(k.sum()),
+                         "overshoot": float(np.mean(zb[k] - truth[k] > 1.0)),
+                         "mesh_in_front": float(np.median(truth[k] - z0[k])),
+                         "sweep_minus_truth": float(np.median(zb[k] - truth[k]))})
+    print(f"pass 1: {len(first)} rays, {len(flagged)} cells flagged; pass 2: {len(dense)} rays, "
+          f"{int(carve.sum())} would carve")
+    print("| feature | rays | ending > 1 inside | mesh in front by | sweep - truth |")
+    print("|---|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r['feature']} | {r['rays']} | {r['overshoot']:.2f} | "
+              f"{r['mesh_in_front']:.2f} | {r['sweep_minus_truth']:+.2f} |")
+    if a.out:
+        atomic_write_json(a.out, {"scene": str(a.scene), "mesh": str(a.mesh), "rows": rows,
+                                  "args": {k: str(v) for k, v in vars(a).items()}})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
