@@ -520,7 +520,32 @@ def test_carve_consensus_runs_on_a_scene_and_writes_its_table(tiny_scene, tmp_pa
                       "--out", str(out)]) == 0
     assert "pass 1:" in capsys.readouterr().out
     rows = json.loads(out.read_text())["rows"]
-    assert all(set(r) == {"feature", "rays", "overshoot", "mesh_in_front", "sweep_minus_truth"}
+    assert all(set(r) == {"feature", "agree", "rays", "overshoot", "mesh_in_front",
+                          "sweep_minus_truth"}
                for r in rows)
     with pytest.raises(SystemExit, match="carve_consensus"):
         tool.main([str(tmp_path / "none"), str(tiny_scene / "gt_mesh.ply")])
+
+
+def test_local_convexity_is_minus_r_over_4_rho_on_a_sphere_and_0_on_a_plane():
+    """The mean height over the tangent plane of a sphere's cap of chord radius R, over R:
+    -R / (4 rho) (uniform samples; the height is -chord^2 / (2 rho), chord^2 uniform in
+    [0, R^2])."""
+    import trimesh
+
+    tool = _tool("carve_consensus")
+    rho, R = 10.0, 4.0
+    sphere = trimesh.creation.icosphere(subdivisions=6, radius=rho)
+    samples, _ = trimesh.sample.sample_surface_even(sphere, 300000, seed=0)
+    g = np.random.default_rng(0)
+    n = g.normal(size=(20, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    got = tool.local_convexity(samples, rho * n, n, R)
+    assert np.allclose(got, -R / (4 * rho), atol=0.01)
+    xy = g.uniform(-20, 20, (200000, 2))
+    plane = np.column_stack([xy, np.zeros(len(xy))])
+    up = np.tile([0.0, 0.0, 1.0], (5, 1))
+    flat = tool.local_convexity(plane, np.column_stack([g.uniform(-5, 5, (5, 2)),
+                                                         np.zeros(5)]), up, R)
+    assert np.allclose(flat, 0.0, atol=1e-12)
+    assert np.isnan(tool.local_convexity(plane, np.array([[0.0, 0.0, 50.0]]), up[:1], R)[0])
