@@ -89,6 +89,17 @@ def local_convexity(samples: np.ndarray, points: np.ndarray, normals: np.ndarray
     return out
 
 
+def first_ball(points: np.ndarray, feats: list[dict]) -> np.ndarray:
+    """(N,) the index of the first feature (``features.json``: ``center``, ``radius``) whose
+    ball holds each point (N, 3); ``len(feats)`` for none (a NaN point included)."""
+    out = np.full(len(points), len(feats))
+    for f in reversed(range(len(feats))):
+        inside = np.linalg.norm(points - np.asarray(feats[f]["center"]), axis=1) \
+            <= feats[f]["radius"]
+        out[inside] = f
+    return out
+
+
 def sweep_views(data: dict, views, stride: int, cells: set | None, cell: float) -> np.ndarray:
     """(N, 15) per swept ray of `views` (every `stride`-th pixel; only those whose mesh
     point lies in `cells`, when given): its view, the mesh's depth, the best depth, its cost,
@@ -161,15 +172,13 @@ def main(argv: list[str] | None = None) -> int:
                                         dense[agreed, 11:14], a.radius)
     with np.errstate(invalid="ignore"):
         carve = agreed & ~(convexity < a.convex)
-    rows, left = [], np.ones(len(dense), bool)
     feats = json.loads((a.scene / "features.json").read_text())["features"]
-    for name, inside in [(f["name"], np.linalg.norm(dense[:, 5:8] - f["center"], axis=1)
-                          <= f["radius"]) for f in feats] + [("elsewhere", None)]:
-        part = left & inside if inside is not None else left  # the first ball holding it
-        left &= ~part
-        k = part & carve
-        if (part & agreed).any():
-            rows.append({"feature": name, "agree": int((part & agreed).sum()),
+    where = first_ball(dense[:, 5:8], feats)
+    rows = []
+    for f, name in enumerate([f["name"] for f in feats] + ["elsewhere"]):
+        k = (where == f) & carve
+        if ((where == f) & agreed).any():
+            rows.append({"feature": name, "agree": int(((where == f) & agreed).sum()),
                          "rays": int(k.sum()),
                          "overshoot": float(np.mean(zb[k] - truth[k] > 1.0)) if k.any() else None,
                          "mesh_in_front": float(np.median(truth[k] - z0[k])) if k.any() else None,

@@ -511,6 +511,22 @@ def test_carve_consensus_pools_each_cell_as_a_plain_loop_does(seed):
         assert count[i] == (len(same) if len({int(views[j]) for j in same}) >= 2 else 0)
 
 
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_carve_consensus_counts_each_ray_in_the_first_ball_that_holds_it(seed):
+    tool = _tool("carve_consensus")
+    g = np.random.default_rng(seed)
+    feats = [{"center": g.uniform(-5, 5, 3).tolist(), "radius": float(g.uniform(1, 6))}
+             for _ in range(int(g.integers(0, 5)))]
+    points = g.uniform(-8, 8, (50, 3))
+    points[0] = np.nan
+    got = tool.first_ball(points, feats)
+    for i, p in enumerate(points):
+        inside = [f for f, b in enumerate(feats)
+                  if np.linalg.norm(p - np.asarray(b["center"])) <= b["radius"]]
+        assert got[i] == (inside[0] if inside else len(feats))
+
+
 def test_carve_consensus_runs_on_a_scene_and_writes_its_table(tiny_scene, tmp_path, capsys):
     """End to end on the tiny scene's own ground-truth mesh (at 64x48 the sweep's answers are
     not judged: `tests/mesh/test_photo_carve.py` does that)."""
