@@ -26,6 +26,18 @@ from neus_l0.fields.model import NeuSModel
 from neus_l0.fields.variance import SingleVariance
 
 
+@pytest.fixture
+def tiny_demo(monkeypatch):
+    """`neus-l0 demo` on a scene of 6 views at 40x30 with ground truth as coarse as
+    `tiny_scene`'s (its scorings' exact point-to-mesh queries run over 16x fewer points
+    than at the demo's spacing): the patched ``neus_l0.pipelines.demo`` module."""
+    import neus_l0.pipelines.demo as demo
+
+    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30,
+                                             "point_spacing": 2.0, "gt_voxel": 4.0})
+    return demo
+
+
 @pytest.fixture(scope="session")
 def tiny_scene(tmp_path_factory):
     """A small built-in `demo` scene (8 views, 64x48, coarse ground truth): its folder Path.

@@ -28,7 +28,6 @@ truth on them and where the sweep ends (median best depth - true depth).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -40,6 +39,7 @@ from scipy.spatial import cKDTree
 from neus_l0.atomic import atomic_write_json
 from neus_l0.data.cameras import read_grays, read_masks
 from neus_l0.errors import NeusL0Error
+from neus_l0.evaluation.features import load_features
 from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.mesh import photo_carve as pc
 from neus_l0.mesh.raster import finest_footprint
@@ -126,6 +126,85 @@ def sweep_views(data: dict, views, stride: int, cells: set | None, cell: float) 
     return np.concatenate(rows) if rows else np.zeros((0, 15))
 
 
+def read_inputs(scene: Path, mesh_path: Path) -> dict:
+    """The scene's exact first hits, cameras, masks, grey images and features, and the
+    mesh's dense surface samples, for `sweep_views` (its keys).
+
+    Raises:
+        SystemExit: one line naming the file that is missing or does not match.
+    """
+    if not mesh_path.is_file():
+        raise SystemExit(f"carve_consensus: {mesh_path}: no such mesh file")
+    try:
+        feats = load_features(scene)  # before the sweeps: a bad file fails now
+        pts, depth, P = first_hits(scene)
+        masks, grays = read_masks(scene), read_grays(scene)
+    except NeusL0Error as exc:
+        raise SystemExit(f"carve_consensus: {exc}") from None
+    for name, got in (("mask", masks), ("image", grays)):
+        if sorted(got) != list(range(len(P))):
+            raise SystemExit(f"carve_consensus: {scene / name}: views {sorted(got)[:5]}... "
+                             f"for {len(P)} cameras")
+    mesh = trimesh.load(mesh_path, process=False, force="mesh")
+    if len(mesh.faces) == 0:
+        raise SystemExit(f"carve_consensus: {mesh_path}: no faces")
+    foot = finest_footprint(mesh, P)
+    samples, face = trimesh.sample.sample_surface(mesh, pc.sample_count(mesh, foot), seed=0)
+    return {"pts": pts, "depth": depth, "P": P, "foot": foot, "samples": samples,
+            "feats": feats, "normals": np.asarray(mesh.face_normals)[face],
+            "verts": np.asarray(mesh.vertices, np.float64),
+            "masks": [masks[v] for v in range(len(P))],
+            "gray": torch.as_tensor(np.stack([grays[v] for v in range(len(P))])),
+            "offsets": np.arange(-pc.BEFORE_PX, pc.REACH_PX + 1e-9, pc.STEP_PX) * foot}
+
+
+def carving_rays(data: dict, a: argparse.Namespace) -> tuple:
+    """The two passes (the module docstring): pass 1's rays (N1, 15), the flagged cells,
+    pass 2's scored rays (N2, 15), and (N2,) bool the rays that agree and those that carve
+    (agree where the mesh is not convex)."""
+    P, foot = data["P"], data["foot"]
+    tol, margin = 2 * foot, pc.MARGIN_PX * foot
+    first = sweep_views(data, range(0, len(P), a.every), pc.STRIDE, None, a.cell)
+    ok = first[:, 3] < pc.INVALID
+    keys = cell_keys(first[ok, 8:11], first[ok, 11:14], a.cell)
+    med, agree, count = consensus(keys, first[ok, 14], first[ok, 0], tol)
+    flagged = {tuple(k) for k in keys[(count >= 3) & (med >= margin) & (agree >= 0.3)]}
+    dense = sweep_views(data, range(len(P)), 1, flagged, a.cell)
+    dense = dense[dense[:, 3] < pc.INVALID]
+    med, agree, count = consensus(cell_keys(dense[:, 8:11], dense[:, 11:14], a.cell),
+                                  dense[:, 14], dense[:, 0], tol)
+    agreed = ((count >= a.min_rays) & (agree >= a.agree) & (med >= margin)
+              & (np.abs(dense[:, 14] - med) <= tol) & (dense[:, 3] < pc.MAX_COST)
+              & np.isfinite(dense[:, 4]))
+    convexity = np.full(len(dense), np.nan)
+    convexity[agreed] = local_convexity(data["samples"], dense[agreed, 8:11],
+                                        dense[agreed, 11:14], a.radius)
+    with np.errstate(invalid="ignore"):
+        carve = agreed & ~(convexity < a.convex)
+    return first, flagged, dense, agreed, carve
+
+
+def feature_rows(dense: np.ndarray, agreed: np.ndarray, carve: np.ndarray,
+                 feats: list[dict]) -> list[dict]:
+    """Per feature (and "elsewhere") that holds agreeing rays: how many agree, how many
+    carve, the share of those ending more than a unit inside the truth, the median of how
+    far the mesh lies in front of the truth and of where the sweep ends against it."""
+    _, z0, zb, _, truth = dense[:, :5].T
+    where = first_ball(dense[:, 5:8], feats)
+    rows = []
+    for f, name in enumerate([f["name"] for f in feats] + ["elsewhere"]):
+        part = where == f
+        k = part & carve
+        if not (part & agreed).any():
+            continue
+        rows.append({"feature": name, "agree": int((part & agreed).sum()), "rays": int(k.sum()),
+                     "overshoot": float(np.mean(zb[k] - truth[k] > 1.0)) if k.any() else None,
+                     "mesh_in_front": float(np.median(truth[k] - z0[k])) if k.any() else None,
+                     "sweep_minus_truth": float(np.median(zb[k] - truth[k])) if k.any()
+                     else None})
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene", type=Path, help="a synthetic scene folder (neus-l0 synth)")
@@ -140,50 +219,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="the local convexity's radius, world units")
     ap.add_argument("--out", type=Path, help="also write the table as JSON")
     a = ap.parse_args(argv)
-    try:
-        pts, depth, P = first_hits(a.scene)
-        masks, grays = read_masks(a.scene), read_grays(a.scene)
-    except NeusL0Error as exc:
-        raise SystemExit(f"carve_consensus: {exc}") from None
-    mesh = trimesh.load(a.mesh, process=False)
-    foot = finest_footprint(mesh, P)
-    samples, face = trimesh.sample.sample_surface(mesh, pc.sample_count(mesh, foot), seed=0)
-    data = {"pts": pts, "depth": depth, "P": P, "foot": foot, "samples": samples,
-            "normals": np.asarray(mesh.face_normals)[face],
-            "verts": np.asarray(mesh.vertices, np.float64),
-            "masks": [masks[v] for v in range(len(P))],
-            "gray": torch.as_tensor(np.stack([grays[v] for v in range(len(P))])),
-            "offsets": np.arange(-pc.BEFORE_PX, pc.REACH_PX + 1e-9, pc.STEP_PX) * foot}
-    tol, margin = 2 * foot, pc.MARGIN_PX * foot
-    first = sweep_views(data, range(0, len(P), a.every), pc.STRIDE, None, a.cell)
-    ok = first[:, 3] < pc.INVALID
-    keys = cell_keys(first[ok, 8:11], first[ok, 11:14], a.cell)
-    med, agree, count = consensus(keys, first[ok, 14], first[ok, 0], tol)
-    flagged = {tuple(k) for k in keys[(count >= 3) & (med >= margin) & (agree >= 0.3)]}
-    dense = sweep_views(data, range(len(P)), 1, flagged, a.cell)
-    dense = dense[dense[:, 3] < pc.INVALID]
-    med, agree, count = consensus(cell_keys(dense[:, 8:11], dense[:, 11:14], a.cell),
-                                  dense[:, 14], dense[:, 0], tol)
-    _, z0, zb, cb, truth = dense[:, :5].T
-    agreed = ((count >= a.min_rays) & (agree >= a.agree) & (med >= margin)
-              & (np.abs(dense[:, 14] - med) <= tol) & (cb < pc.MAX_COST) & np.isfinite(truth))
-    convexity = np.full(len(dense), np.nan)
-    convexity[agreed] = local_convexity(data["samples"], dense[agreed, 8:11],
-                                        dense[agreed, 11:14], a.radius)
-    with np.errstate(invalid="ignore"):
-        carve = agreed & ~(convexity < a.convex)
-    feats = json.loads((a.scene / "features.json").read_text())["features"]
-    where = first_ball(dense[:, 5:8], feats)
-    rows = []
-    for f, name in enumerate([f["name"] for f in feats] + ["elsewhere"]):
-        k = (where == f) & carve
-        if ((where == f) & agreed).any():
-            rows.append({"feature": name, "agree": int(((where == f) & agreed).sum()),
-                         "rays": int(k.sum()),
-                         "overshoot": float(np.mean(zb[k] - truth[k] > 1.0)) if k.any() else None,
-                         "mesh_in_front": float(np.median(truth[k] - z0[k])) if k.any() else None,
-                         "sweep_minus_truth": float(np.median(zb[k] - truth[k])) if k.any()
-                         else None})
+    for flag, value in (("--every", a.every), ("--cell", a.cell), ("--radius", a.radius),
+                        ("--min-rays", a.min_rays)):
+        if not value > 0:
+            raise SystemExit(f"carve_consensus: {flag} {value}: must be positive")
+    data = read_inputs(a.scene, a.mesh)
+    first, flagged, dense, agreed, carve = carving_rays(data, a)
+    rows = feature_rows(dense, agreed, carve, data["feats"])
     print(f"pass 1: {len(first)} rays, {len(flagged)} cells flagged; pass 2: {len(dense)} rays, "
           f"{int(agreed.sum())} agree, {int(carve.sum())} of them where the mesh is not convex "
           f"(local convexity >= {a.convex:g} within {a.radius:g} units) would carve")

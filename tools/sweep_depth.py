@@ -22,7 +22,6 @@ move it). The defaults (5x5, best 2) are the first measurement's; `--photo-carve
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -33,6 +32,7 @@ import trimesh
 from neus_l0.atomic import atomic_write_json
 from neus_l0.data.cameras import read_grays
 from neus_l0.errors import NeusL0Error
+from neus_l0.evaluation.features import load_features
 from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.mesh.photo_carve import INVALID, depth_map, sample_count, sweep_depths
 from neus_l0.mesh.raster import finest_footprint
@@ -51,7 +51,11 @@ def table(root: Path, mesh_path: Path, names: list[str] | None, n_open: int, a) 
     foot = finest_footprint(mesh, P)
     samples, face = trimesh.sample.sample_surface(mesh, sample_count(mesh, foot), seed=0)
     normals = np.asarray(mesh.face_normals)[face]
-    feats = json.loads((root / "features.json").read_text())["features"]
+    feats = load_features(root)
+    unknown = sorted(set(names or ()) - {f["name"] for f in feats})
+    if unknown:
+        raise SystemExit(f"{root / 'features.json'}: no feature {unknown} (it has "
+                         f"{[f['name'] for f in feats]})")
     groups = [(f["name"], np.linalg.norm(pts - np.asarray(f["center"]), axis=-1) <= f["radius"])
               for f in feats if names is None or f["name"] in names]
     if n_open:

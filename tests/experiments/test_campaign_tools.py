@@ -8,6 +8,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -492,6 +493,8 @@ def test_sweep_depth_reads_a_true_mesh_as_right(tiny_scene, tmp_path, capsys):
     assert "| open surface |" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="--patch 4"):
         tool.main([str(tiny_scene), str(tiny_scene / "gt_mesh.ply"), "--patch", "4"])
+    with pytest.raises(SystemExit, match="no feature"):
+        tool.main([str(tiny_scene), str(tiny_scene / "gt_mesh.ply"), "--features", "nope"])
 
 
 @settings(max_examples=40, deadline=None)
@@ -539,8 +542,18 @@ def test_carve_consensus_runs_on_a_scene_and_writes_its_table(tiny_scene, tmp_pa
     assert all(set(r) == {"feature", "agree", "rays", "overshoot", "mesh_in_front",
                           "sweep_minus_truth"}
                for r in rows)
-    with pytest.raises(SystemExit, match="carve_consensus"):
-        tool.main([str(tmp_path / "none"), str(tiny_scene / "gt_mesh.ply")])
+    mesh = str(tiny_scene / "gt_mesh.ply")
+    for argv, named in (([str(tmp_path / "none"), mesh], "features.json"),
+                        ([str(tiny_scene), str(tmp_path / "no.ply")], "no.ply: no such mesh"),
+                        ([str(tiny_scene), mesh, "--cell", "0"], "--cell 0")):
+        with pytest.raises(SystemExit, match=named):
+            tool.main(argv)
+    # a scene with a mask missing is named before any sweep
+    broken = tmp_path / "broken"
+    shutil.copytree(tiny_scene, broken)
+    next(iter(sorted((broken / "mask").iterdir()))).unlink()
+    with pytest.raises(SystemExit, match="mask: views"):
+        tool.main([str(broken), mesh])
 
 
 def test_local_convexity_is_minus_r_over_4_rho_on_a_sphere_and_0_on_a_plane():

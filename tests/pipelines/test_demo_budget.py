@@ -9,14 +9,9 @@ from neus_l0.cli import main
 from neus_l0.config.load import load_config
 
 
-def test_the_demo_trains_a_planned_budget_and_a_rerun_reuses_it(small, monkeypatch, tmp_path,
+def test_the_demo_trains_a_planned_budget_and_a_rerun_reuses_it(small, tiny_demo, tmp_path,
                                                                  capsys):
-    import neus_l0.pipelines.demo as demo
 
-    # ground truth as coarse as `tiny_scene`'s: the three scorings' exact point-to-mesh
-    # completeness queries run over the GT points (16x fewer than at the default spacing)
-    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30,
-                                              "point_spacing": 2.0, "gt_voxel": 4.0})
     out = tmp_path / "demo"
     argv = ["demo", "--out", str(out), "--quiet", "--resolution", "40", "--budget", "20s",
             "--threads", "1",

@@ -232,15 +232,13 @@ def test_a_slow_machine_expects_a_slower_compile_and_a_capped_demo_stays_eager(
     assert cuda.compile_s == ca.COLD_COMPILE_S["cuda"]  # the GPU's constants are launch-bound
 
 
-def test_a_fresh_demo_decides_compiling_on_a_timed_step(small, monkeypatch, tmp_path, capsys):
+def test_a_fresh_demo_decides_compiling_on_a_timed_step(small, tiny_demo, monkeypatch, tmp_path,
+                                                        capsys):
     """The demo leaves `auto` to `train`, which times eager steps first (it used to decide
     on the cost model alone, before `train`, and could not see a slow machine)."""
-    import neus_l0.pipelines.demo as demo
     from neus_l0.cli import main
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30,
-                                             "point_spacing": 2.0, "gt_voxel": 4.0})
     out = tmp_path / "demo"
     # long enough to be worth timing (`worth_measuring`), too short to repay a compile
     argv = ["demo", "--out", str(out), "--resolution", "32", "--threads", "1", "--quiet",

@@ -264,12 +264,10 @@ def test_cli_errors_are_one_line(scene, tmp_path, capsys):
     assert "train first" in capsys.readouterr().err
 
 
-def _tiny_demo(small, monkeypatch, tmp_path, iters):
-    import neus_l0.pipelines.demo as demo
+def _tiny_demo(small, tmp_path, iters):
+    """The demo on the `tiny_demo` fixture's scene (the calling test requests it)."""
     from neus_l0.cli import main
 
-    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30,
-                                             "point_spacing": 2.0, "gt_voxel": 4.0})
     out = tmp_path / "demo"
     rc = main(["demo", "--out", str(out), "--quiet", "--resolution", "40",
                *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
@@ -281,22 +279,19 @@ def _tiny_demo(small, monkeypatch, tmp_path, iters):
     return json.loads((out / "metrics.json").read_text())
 
 
-def test_demo_quick(small, monkeypatch, tmp_path):
-    m = _tiny_demo(small, monkeypatch, tmp_path, 3)
+def test_demo_quick(small, tiny_demo, tmp_path):
+    m = _tiny_demo(small, tmp_path, 3)
     assert m["iterations"] == 3 and m["mesh"]["faces"] > 0
 
 
-def test_demo_rerun_with_another_sampler_is_refused_not_mislabelled(small, monkeypatch,
+def test_demo_rerun_with_another_sampler_is_refused_not_mislabelled(small, tiny_demo,
                                                                     tmp_path, capsys):
     """Re-running the demo into the same --out resumes its run: with sampler=hvs instead of
     the run's l0 it would train on and label an l0 run hvs (issue #27)."""
-    import neus_l0.pipelines.demo as demo
     from neus_l0.cli import main
 
-    _tiny_demo(small, monkeypatch, tmp_path, 3)
+    _tiny_demo(small, tmp_path, 3)
     capsys.readouterr()
-    monkeypatch.setattr(demo, "DEMO_SCENE", {"views": 6, "width": 40, "height": 30,
-                                             "point_spacing": 2.0, "gt_voxel": 4.0})
     rc = main(["demo", "--out", str(tmp_path / "demo"), "--quiet", "--resolution", "40",
                *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
                "train.iters=5", "train.val_every=0", "sampler=hvs"])
@@ -305,8 +300,8 @@ def test_demo_rerun_with_another_sampler_is_refused_not_mislabelled(small, monke
 
 
 @pytest.mark.slow
-def test_demo_end_to_end_small(small, monkeypatch, tmp_path):
-    m = _tiny_demo(small, monkeypatch, tmp_path, 300)
+def test_demo_end_to_end_small(small, tiny_demo, tmp_path):
+    m = _tiny_demo(small, tmp_path, 300)
     assert m["chamfer"] is None or np.isfinite(m["chamfer"]["overall"])
 
 
