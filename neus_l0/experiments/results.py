@@ -18,17 +18,21 @@ from pathlib import Path
 from neus_l0.atomic import atomic_write_json, atomic_write_text
 
 #: Columns of results.csv, in order (``mesh_seconds``: the final mesh's marching cubes
-#: alone, without loading the model; missing in sweeps made before it existed).
+#: alone, without loading the model; ``pits`` and ``thin``: the Chamfer distance over the
+#: scene's pit and thin features, ``features.json``, None on a scene without them; each
+#: missing in sweeps made before it existed).
 COLUMNS = ("scene", "sampler", "budget_s", "seed", "status", "error", "train_seconds",
            "iterations", "its_per_s", "accuracy", "completeness", "overall", "psnr_heldout",
-           "peak_mem_mb", "sample_dist_final", "run_dir", "mesh", "mesh_seconds")
+           "peak_mem_mb", "sample_dist_final", "run_dir", "mesh", "mesh_seconds", "pits",
+           "thin")
 #: Columns holding numbers (None when missing).
 NUMERIC = ("budget_s", "seed", "train_seconds", "iterations", "its_per_s", "accuracy",
            "completeness", "overall", "psnr_heldout", "peak_mem_mb", "sample_dist_final",
-           "mesh_seconds")
+           "mesh_seconds", "pits", "thin")
 #: Columns that do not depend on timing: equal between two sweeps that reach `train.iters`.
 DETERMINISTIC = ("scene", "sampler", "budget_s", "seed", "status", "iterations", "accuracy",
-                 "completeness", "overall", "psnr_heldout", "sample_dist_final")
+                 "completeness", "overall", "psnr_heldout", "sample_dist_final", "pits",
+                 "thin")
 
 
 def run_name(scene: str, sampler: str, budget_s: float, seed: int) -> str:

@@ -461,7 +461,8 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
         **spec.base_row(), status="done", error=None, train_seconds=result.seconds,
         iterations=result.iteration, its_per_s=result.iteration / max(result.seconds, 1e-9),
         accuracy=score and score["accuracy"], completeness=score and score["completeness"],
-        overall=score and score["overall"],
+        overall=score and score["overall"], pits=kind_overall(score, "pit"),
+        thin=kind_overall(score, "thin"),
         psnr_heldout=float(np.mean(psnrs)) if psnrs else None, peak_mem_mb=peak_mb,
         sample_dist_final=sample_dist, mesh=f"runs/{spec.name}/mesh.ply",
         mesh_seconds=timings["extract_s"])
@@ -471,6 +472,13 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
         {"peak_rss": peak_rss, "peak_gpu": peak_gpu, "timings": timings, "curve": curve,
          "surface": surface.kind if surface is not None else None}))
     return row
+
+
+def kind_overall(score: dict | None, kind: str) -> float | None:
+    """The Chamfer distance over a score's features of `kind` ("pit", "thin"; the report's
+    ``features.by_kind``), None without any."""
+    entry = ((score or {}).get("features") or {}).get("by_kind", {}).get(kind)
+    return None if entry is None else entry.get("overall")
 
 
 def _mesh_stage(spec: RunSpec, timings: dict, report):

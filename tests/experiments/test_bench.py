@@ -71,7 +71,8 @@ def test_sweep_writes_results_with_finite_numbers(sweep):
         r = rows[sampler]
         assert r["status"] == "done" and r["error"] == ""
         for c in NUMERIC:
-            assert math.isfinite(float(r[c])), (sampler, c, r[c])
+            if c not in ("pits", "thin") or r[c] != "":
+                assert math.isfinite(float(r[c])), (sampler, c, r[c])
         assert int(r["iterations"]) == 8
         assert float(r["overall"]) > 0 and float(r["peak_mem_mb"]) > 10
         run_dir = out / r["run_dir"]
@@ -85,6 +86,10 @@ def test_sweep_writes_results_with_finite_numbers(sweep):
         spec = json.loads((run_dir / "spec.json").read_text())
         assert spec["config"]["train"]["iters"] == 8  # resolved once, when the sweep began
         assert all(m["sample_dist"] > 0 for m in logged)
+        by_kind = json.loads((run_dir / "eval.json").read_text())["chamfer"]["features"]["by_kind"]
+        for column, kind in (("pits", "pit"), ("thin", "thin")):  # the demo has both
+            want = by_kind[kind]["overall"]
+            assert (r[column] == "") if want is None else float(r[column]) == pytest.approx(want)
     assert json.loads((out / "results.json").read_text()) == outcome.rows
     assert (out / "scenes" / "demo").exists()
 
@@ -467,3 +472,12 @@ def test_iteration_matched_effect_recovers_an_exact_offset():
     # 16 runs, 5 parameters: the noise-free offset is recovered exactly, with zero error
     assert "| l0 | 16 | 2 | -0.250 | 0.000 | 11 |" in text
     assert iteration_matched_effect(rows[:4]) == ""  # one sampler only: nothing to fit
+
+
+def test_a_score_without_features_has_no_pit_or_thin_column():
+    from neus_l0.experiments.runner import kind_overall
+
+    assert kind_overall(None, "pit") is None
+    assert kind_overall({"overall": 1.0}, "pit") is None
+    assert kind_overall({"features": {"by_kind": {"thin": {"overall": 2.5}}}}, "pit") is None
+    assert kind_overall({"features": {"by_kind": {"thin": {"overall": 2.5}}}}, "thin") == 2.5
