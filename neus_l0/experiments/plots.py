@@ -5,6 +5,9 @@
   time and of the Chamfer; vertical band = min..max Chamfer over seeds, horizontal bar =
   min..max time: a run that finishes `train.iters` early stops before its budget);
 * ``psnr_vs_time.png``: held-out PSNR against the measured training time, drawn the same way;
+* ``pits_vs_time.png`` and ``thin_vs_time.png``: the Chamfer distance over the scene's pit and
+  thin features against the training time, drawn the same way (only when some run has them:
+  a synthetic scene with ``features.json``);
 * ``chamfer_vs_iterations.png``: overall Chamfer against the iterations each run reached, a
   point per run: the iteration-matched view, which machine load does not move;
 * ``sample_distance.png``: mean distance of the fine samples to the true surface against
@@ -191,7 +194,8 @@ def results_table(rows: list[dict]) -> str:
     """Markdown table of the final numbers (mean ± std over seeds) and the failed runs."""
     cols = [("iterations", "iterations", 4), ("its_per_s", "it/s", 3),
             ("accuracy", "accuracy", 3), ("completeness", "completeness", 3),
-            ("overall", "Chamfer overall", 3), ("psnr_heldout", "PSNR held-out (dB)", 3),
+            ("overall", "Chamfer overall", 3), ("pits", "pits", 3), ("thin", "thin parts", 3),
+            ("psnr_heldout", "PSNR held-out (dB)", 3),
             ("peak_mem_mb", "peak mem (MB)", 4), ("sample_dist_final", "sample dist", 3)]
     lines = ["| scene | sampler | budget (s) | seeds | " + " | ".join(c[1] for c in cols) + " |",
              "|---" * (4 + len(cols)) + "|"]
@@ -205,7 +209,8 @@ def results_table(rows: list[dict]) -> str:
                              + " | ".join(cells) + " |")
     text = "\n".join(lines) + "\n"
     text += ("\nChamfer distances and sample distances in world units (mean ± sample std over "
-             "seeds); PSNR over the foreground of the held-out views.\n")
+             "seeds; pits and thin parts: over the scene's features of that kind); PSNR over "
+             "the foreground of the held-out views.\n")
     text += paired_differences(rows)
     text += iteration_matched_effect(rows)
     failed = [r for r in rows if r["status"] != "done"]
@@ -320,4 +325,8 @@ def write_plots(out_dir: str | Path, rows: list[dict] | None = None) -> list[Pat
         plot_sample_distance(out_dir, rows, plots / "sample_distance.png"),
         atomic_write_text(plots / "table.md", results_table(rows)),
     ]
+    for metric, label in (("pits", "pits"), ("thin", "thin parts")):
+        if len(_finite(r.get(metric) for r in _done(rows))):
+            written.append(plot_metric_vs_time(rows, metric, f"Chamfer over the {label} "
+                                               "(world units)", plots / f"{metric}_vs_time.png"))
     return written

@@ -178,8 +178,11 @@ def test_plots_are_written(sweep):
                  "sample_distance.png"):
         data = (out / "plots" / name).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 1000
+    for name in ("pits_vs_time.png", "thin_vs_time.png"):  # the demo has both kinds
+        assert (out / "plots" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     table = (out / "plots" / "table.md").read_text()
     assert "| demo | hvs | 30 | 1 |" in table and "| demo | l0 | 30 | 1 |" in table
+    assert "| pits | thin parts |" in table
     assert "demo__nope__30s__seed0" in table  # listed under the failed runs
 
 
