@@ -424,6 +424,9 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
                       preview=False)
     train_views, test_views = split_views(full.n_views, spec.holdout)
     train_scene = subset_scene(full, train_views)
+    # `train` holds the same views out of the full scene, so that run.json records the full
+    # scene's indices (the mesh steps and `render --views test` read them)
+    cfg.train.holdout = int(spec.holdout)
     surface = SurfaceDistance.from_scene_dir(spec.scene_dir)
     hook = SampleDistanceHook(surface, spec.sample_rays) if surface is not None else None
     warm_up_torch()
@@ -432,7 +435,7 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
 
     ticker = TrainProgress(report, spec.budget_s)
     ticker.start()
-    result = train(train_scene, cfg, run_dir, device=spec.device, progress=progress,
+    result = train(full, cfg, run_dir, device=spec.device, progress=progress,
                    hooks=[hook, ticker] if hook else [ticker], snapshots=spec.snapshots)
     timings["train_s"] = result.seconds
     if result.signal:

@@ -83,6 +83,9 @@ def test_sweep_writes_results_with_finite_numbers(sweep):
         assert (out / r["mesh"]).is_file()
         logged = [json.loads(line) for line in (run_dir / "metrics.jsonl").open()]
         assert [m["iter"] for m in logged] == [4, 8]
+        views = json.loads((run_dir / "run.json").read_text())["views"]
+        assert views == {"holdout": 4, "n_views": 8, "train": [1, 2, 3, 5, 6, 7],
+                         "heldout": [0, 4]}  # the full scene's indices
         spec = json.loads((run_dir / "spec.json").read_text())
         assert spec["config"]["train"]["iters"] == 8  # resolved once, when the sweep began
         assert all(m["sample_dist"] > 0 for m in logged)
