@@ -1,9 +1,11 @@
 """Would carving only where a neighbourhood's sweeps agree leave the right surface alone?
 (issue #35, outside training)
 
-`neus-l0 mesh --photo-carve` carves ray by ray, and on the cup a third of its carving rays
-end more than a unit inside the true surface. This measures a two-pass alternative. Pass 1
-sweeps the concave pixels (`neus_l0.mesh.photo_carve.concave_pixels`, every 3rd row and
+Ray by ray (`neus-l0 mesh --photo-carve` until session 24), a third of the cup's carving
+rays ended more than a unit inside the true surface. This measures, against the exact
+surface, the two-pass rule that `--photo-carve` now uses (`neus_l0.mesh.sweep_consensus.
+consensus_rays`, whose cells and radius are in pixel footprints; here world units). Pass 1
+sweeps the concave pixels (`neus_l0.mesh.plane_sweep.concave_pixels`, every 3rd row and
 column) of every `--every`-th view, as `--photo-carve` does. Each ray's displacement along
 the mesh normal, h = (best depth - mesh depth) |ray . n|, is pooled in cells of `--cell`
 world units (the mesh point's cell and its normal's dominant signed axis; `consensus`).
@@ -34,59 +36,15 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from scipy.spatial import cKDTree
 
 from neus_l0.atomic import atomic_write_json
 from neus_l0.data.cameras import read_grays, read_masks
 from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.features import load_features
 from neus_l0.evaluation.synthetic import first_hits
-from neus_l0.mesh import photo_carve as pc
+from neus_l0.mesh import plane_sweep as ps
+from neus_l0.mesh import sweep_consensus as sc
 from neus_l0.mesh.raster import finest_footprint
-
-
-def cell_keys(points: np.ndarray, normals: np.ndarray, cell: float) -> np.ndarray:
-    """(N, 4) int keys: the points' (N, 3) cell of side `cell`, and the normals' (N, 3)
-    dominant axis with its sign (0-5)."""
-    axis = np.argmax(np.abs(normals), 1)
-    sign = normals[np.arange(len(normals)), axis] > 0
-    return np.column_stack([np.floor(points / cell).astype(np.int64), axis * 2 + sign])
-
-
-def consensus(keys: np.ndarray, h: np.ndarray, views: np.ndarray, tol: float
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per ray, its cell's median displacement, the share of the cell's rays within `tol`
-    of that median, and the cell's ray count (0 when they come from fewer than 2 views).
-
-    Args:
-        keys: (N, k) int cell keys (`cell_keys`); h: (N,) displacements; views: (N,) the
-            rays' views.
-    """
-    _, cell = np.unique(keys, axis=0, return_inverse=True)
-    cell = cell.reshape(-1)
-    med, agree, count = np.empty(len(h)), np.empty(len(h)), np.zeros(len(h))
-    for c in np.unique(cell):
-        idx = np.flatnonzero(cell == c)
-        m = np.median(h[idx])
-        med[idx] = m
-        agree[idx] = np.mean(np.abs(h[idx] - m) <= tol)
-        count[idx] = len(idx) if len(np.unique(views[idx])) >= 2 else 0
-    return med, agree, count
-
-
-def local_convexity(samples: np.ndarray, points: np.ndarray, normals: np.ndarray,
-                    radius: float) -> np.ndarray:
-    """(N,) how the surface (its dense samples (n, 3)) curves around each point (N, 3) with
-    its normal (N, 3), turned towards the viewer: the mean height of the samples within
-    `radius` over the tangent plane, divided by `radius`. 0 on a plane, -radius / (4 rho) on
-    a sphere of radius rho seen from outside (convex: a rod, a handle), positive in a
-    concavity; NaN where no sample is that near."""
-    tree = cKDTree(samples)
-    out = np.full(len(points), np.nan)
-    for i, near in enumerate(tree.query_ball_point(points, radius)):
-        if near:
-            out[i] = np.mean((samples[near] - points[i]) @ normals[i]) / radius
-    return out
 
 
 def first_ball(points: np.ndarray, feats: list[dict]) -> np.ndarray:
@@ -107,18 +65,18 @@ def sweep_views(data: dict, views, stride: int, cells: set | None, cell: float) 
     displacement h along it."""
     rows = []
     for v in views:
-        found = pc.concave_pixels(data["samples"], data["normals"], data["verts"],
+        found = ps.concave_pixels(data["samples"], data["normals"], data["verts"],
                                   data["P"][v], data["masks"][v], data["foot"], stride)
         if found is None:
             continue
         pix, centre, rays, z0, n = found
         M = centre + rays * z0[:, None]
         if cells is not None:
-            keep = np.array([tuple(k) in cells for k in cell_keys(M, n, cell)], bool)
+            keep = np.array([tuple(k) in cells for k in sc.cell_keys(M, n, cell)], bool)
             if not keep.any():
                 continue
             pix, rays, z0, n, M = pix[keep], rays[keep], z0[keep], n[keep], M[keep]
-        zb, cb, _ = pc.sweep_depths(data["gray"], data["P"], v, pix, n, z0, data["offsets"])
+        zb, cb, _ = ps.sweep_depths(data["gray"], data["P"], v, pix, n, z0, data["offsets"])
         h = (zb - z0) * np.abs((rays * n).sum(1))
         truth = data["depth"][v][pix[:, 1], pix[:, 0]]
         X = data["pts"][v][pix[:, 1], pix[:, 0]]
@@ -149,13 +107,13 @@ def read_inputs(scene: Path, mesh_path: Path) -> dict:
     if len(mesh.faces) == 0:
         raise SystemExit(f"carve_consensus: {mesh_path}: no faces")
     foot = finest_footprint(mesh, P)
-    samples, face = trimesh.sample.sample_surface(mesh, pc.sample_count(mesh, foot), seed=0)
+    samples, face = trimesh.sample.sample_surface(mesh, ps.sample_count(mesh, foot), seed=0)
     return {"pts": pts, "depth": depth, "P": P, "foot": foot, "samples": samples,
             "feats": feats, "normals": np.asarray(mesh.face_normals)[face],
             "verts": np.asarray(mesh.vertices, np.float64),
             "masks": [masks[v] for v in range(len(P))],
             "gray": torch.as_tensor(np.stack([grays[v] for v in range(len(P))])),
-            "offsets": np.arange(-pc.BEFORE_PX, pc.REACH_PX + 1e-9, pc.STEP_PX) * foot}
+            "offsets": np.arange(-ps.BEFORE_PX, ps.REACH_PX + 1e-9, ps.STEP_PX) * foot}
 
 
 def carving_rays(data: dict, a: argparse.Namespace) -> tuple:
@@ -163,21 +121,20 @@ def carving_rays(data: dict, a: argparse.Namespace) -> tuple:
     pass 2's scored rays (N2, 15), and (N2,) bool the rays that agree and those that carve
     (agree where the mesh is not convex)."""
     P, foot = data["P"], data["foot"]
-    tol, margin = 2 * foot, pc.MARGIN_PX * foot
-    first = sweep_views(data, range(0, len(P), a.every), pc.STRIDE, None, a.cell)
-    ok = first[:, 3] < pc.INVALID
-    keys = cell_keys(first[ok, 8:11], first[ok, 11:14], a.cell)
-    med, agree, count = consensus(keys, first[ok, 14], first[ok, 0], tol)
+    tol, margin = 2 * foot, sc.MARGIN_PX * foot
+    first = sweep_views(data, range(0, len(P), a.every), sc.STRIDE, None, a.cell)
+    ok = first[:, 3] < ps.INVALID
+    keys = sc.cell_keys(first[ok, 8:11], first[ok, 11:14], a.cell)
+    med, agree, count = sc.consensus(keys, first[ok, 14], first[ok, 0], tol)
     flagged = {tuple(k) for k in keys[(count >= 3) & (med >= margin) & (agree >= 0.3)]}
     dense = sweep_views(data, range(len(P)), 1, flagged, a.cell)
-    dense = dense[dense[:, 3] < pc.INVALID]
-    med, agree, count = consensus(cell_keys(dense[:, 8:11], dense[:, 11:14], a.cell),
+    dense = dense[dense[:, 3] < ps.INVALID]
+    med, agree, count = sc.consensus(sc.cell_keys(dense[:, 8:11], dense[:, 11:14], a.cell),
                                   dense[:, 14], dense[:, 0], tol)
-    agreed = ((count >= a.min_rays) & (agree >= a.agree) & (med >= margin)
-              & (np.abs(dense[:, 14] - med) <= tol) & (dense[:, 3] < pc.MAX_COST)
-              & np.isfinite(dense[:, 4]))
+    agreed = (sc.agreeing(dense[:, 14], med, agree, count, a.min_rays, a.agree, margin, tol)
+              & (dense[:, 3] < sc.MAX_COST) & np.isfinite(dense[:, 4]))
     convexity = np.full(len(dense), np.nan)
-    convexity[agreed] = local_convexity(data["samples"], dense[agreed, 8:11],
+    convexity[agreed] = sc.local_convexity(data["samples"], dense[agreed, 8:11],
                                         dense[agreed, 11:14], a.radius)
     with np.errstate(invalid="ignore"):
         carve = agreed & ~(convexity < a.convex)

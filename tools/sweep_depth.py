@@ -2,7 +2,7 @@
 
 For every pixel whose first true hit (`first_hits`) lies in a feature's ball
 (``features.json``), the trained mesh's depth along the pixel's ray is taken
-(`neus_l0.mesh.photo_carve.depth_map`), then depths from `--before` world units in front of
+(`neus_l0.mesh.plane_sweep.depth_map`), then depths from `--before` world units in front of
 it to `--behind` behind it are swept (`sweep_depths`, as `neus-l0 mesh --photo-carve`
 sweeps): at each, a `--patch` x `--patch` patch on the plane through the point, normal to
 the mesh there, is carried into every other view, each scored (1 - NCC) / 2 on grey
@@ -12,7 +12,7 @@ median |depth - true depth| of the mesh and of the sweep, the signed medians, an
 of pixels each puts within `--tol` of the truth; with `--open` the same for as many pixels
 of the surface outside every feature's balls (where the mesh is right, a sweep should not
 move it). The defaults (5x5, best 2) are the first measurement's; `--photo-carve` sweeps with
-`neus_l0.mesh.photo_carve.PATCH` and `BEST`.
+`neus_l0.mesh.plane_sweep.PATCH` and `BEST`.
 
     python tools/sweep_depth.py SCENE MESH [--features "cavity floor"] [--open 500]
         [--max-pixels 1000] [--before 4] [--behind 20] [--step 0.25] [--patch 5] [--best 2]
@@ -34,7 +34,7 @@ from neus_l0.data.cameras import read_grays
 from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.features import load_features
 from neus_l0.evaluation.synthetic import first_hits
-from neus_l0.mesh.photo_carve import INVALID, depth_map, sample_count, sweep_depths
+from neus_l0.mesh.plane_sweep import INVALID, depth_map, sample_count, sweep_depths
 from neus_l0.mesh.raster import finest_footprint
 
 

@@ -21,8 +21,9 @@ def add_mesh_step_flags(p: argparse.ArgumentParser) -> None:
                         "(needs the scene's masks; extracts twice)")
     p.add_argument("--photo-carve", action="store_true",
                    help="carve free space behind the mesh in its concavities (a deep pit's "
-                        "raised floor) where a plane sweep of the training images agrees in "
-                        "2 views or more (needs the scene's images and masks; extracts twice)")
+                        "raised floor) where the plane sweeps of the training images agree "
+                        "across a neighbourhood of rays and in 2 views or more (needs the "
+                        "scene's images and masks; extracts twice)")
     p.add_argument("--inset", type=float, default=0.0, metavar="K",
                    help="extract the SDF's level -K/s, s NeuS's learned sharpness (a zero level "
                         "trained with NeuS's colour composite over black sits 0.1-0.9 of 1/s "

@@ -407,7 +407,6 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
     report("load config and scene")
     cfg = spec.load_config()  # a bad config fails before torch loads
 
-    import numpy as np
     import torch
 
     from neus_l0.data.split import split_views, subset_scene
@@ -459,22 +458,29 @@ def execute(spec: RunSpec, progress: bool = False, report=None) -> dict:
                          spec.psnr_pixels, report)
     timings["psnr_s"] = time.monotonic() - t0
 
-    peak_mb = peak_gpu if peak_gpu is not None else peak_rss
-    row = make_row(
-        **spec.base_row(), status="done", error=None, train_seconds=result.seconds,
-        iterations=result.iteration, its_per_s=result.iteration / max(result.seconds, 1e-9),
-        accuracy=score and score["accuracy"], completeness=score and score["completeness"],
-        overall=score and score["overall"], pits=kind_overall(score, "pit"),
-        thin=kind_overall(score, "thin"),
-        psnr_heldout=float(np.mean(psnrs)) if psnrs else None, peak_mem_mb=peak_mb,
-        sample_dist_final=sample_dist, mesh=f"runs/{spec.name}/mesh.ply",
-        mesh_seconds=timings["extract_s"])
+    row = _done_row(spec, result, score, psnrs, peak_gpu if peak_gpu is not None else peak_rss,
+                    sample_dist, timings["extract_s"])
     stride = psnr_stride(full.height, full.width, cfg.train.val_downscale, spec.psnr_pixels)
     atomic_write_json(run_dir / "eval.json", _eval_record(
         spec, row, result, score, psnrs, (train_views, test_views, stride),
         {"peak_rss": peak_rss, "peak_gpu": peak_gpu, "timings": timings, "curve": curve,
          "surface": surface.kind if surface is not None else None}))
     return row
+
+
+def _done_row(spec: RunSpec, result, score: dict | None, psnrs: list, peak_mb: float,
+              sample_dist: float | None, mesh_s: float) -> dict:
+    """A finished run's row of results.csv (`make_row`)."""
+    import numpy as np
+
+    return make_row(
+        **spec.base_row(), status="done", error=None, train_seconds=result.seconds,
+        iterations=result.iteration, its_per_s=result.iteration / max(result.seconds, 1e-9),
+        accuracy=score and score["accuracy"], completeness=score and score["completeness"],
+        overall=score and score["overall"], pits=kind_overall(score, "pit"),
+        thin=kind_overall(score, "thin"),
+        psnr_heldout=float(np.mean(psnrs)) if psnrs else None, peak_mem_mb=peak_mb,
+        sample_dist_final=sample_dist, mesh=f"runs/{spec.name}/mesh.ply", mesh_seconds=mesh_s)
 
 
 def kind_overall(score: dict | None, kind: str) -> float | None:

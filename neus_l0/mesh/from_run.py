@@ -253,8 +253,9 @@ def steps_report(metadata: dict) -> list[str]:
                         f"(grid {f['grid']}^3)"))
     if "photo_carved" in metadata:
         c = metadata["photo_carved"]
-        lines.append(f"photo carve: {c['swept']} pixels swept in concavities, {c['carving']} "
-                     "found free space behind the mesh, "
+        lines.append(f"photo carve: {c['swept']} pixels swept in concavities, {c['cells']} "
+                     f"cells whose sweeps agree, {c['carving']} rays found free space behind "
+                     "the mesh, "
                      + ("nothing carved" if not c["points"] else
                         f"{c['points']} grid points carved (grid {c['grid']}^3)"))
     if "dropped_outside_masks" in metadata:

@@ -499,23 +499,6 @@ def test_sweep_depth_reads_a_true_mesh_as_right(tiny_scene, tmp_path, capsys):
 
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 2**32 - 1))
-def test_carve_consensus_pools_each_cell_as_a_plain_loop_does(seed):
-    tool = _tool("carve_consensus")
-    g = np.random.default_rng(seed)
-    n = int(g.integers(1, 60))
-    keys = tool.cell_keys(g.uniform(-20, 20, (n, 3)), g.normal(size=(n, 3)), 10.0)
-    h, views = g.normal(2, 3, n), g.integers(0, 3, n)
-    med, agree, count = tool.consensus(keys, h, views, 1.5)
-    for i in range(n):
-        same = [j for j in range(n) if (keys[j] == keys[i]).all()]
-        m = float(np.median(h[same]))
-        assert med[i] == pytest.approx(m)
-        assert agree[i] == pytest.approx(np.mean([abs(h[j] - m) <= 1.5 for j in same]))
-        assert count[i] == (len(same) if len({int(views[j]) for j in same}) >= 2 else 0)
-
-
-@settings(max_examples=40, deadline=None)
-@given(st.integers(0, 2**32 - 1))
 def test_carve_consensus_counts_each_ray_in_the_first_ball_that_holds_it(seed):
     tool = _tool("carve_consensus")
     g = np.random.default_rng(seed)
@@ -554,27 +537,3 @@ def test_carve_consensus_runs_on_a_scene_and_writes_its_table(tiny_scene, tmp_pa
     next(iter(sorted((broken / "mask").iterdir()))).unlink()
     with pytest.raises(SystemExit, match="mask: views"):
         tool.main([str(broken), mesh])
-
-
-def test_local_convexity_is_minus_r_over_4_rho_on_a_sphere_and_0_on_a_plane():
-    """The mean height over the tangent plane of a sphere's cap of chord radius R, over R:
-    -R / (4 rho) (uniform samples; the height is -chord^2 / (2 rho), chord^2 uniform in
-    [0, R^2])."""
-    import trimesh
-
-    tool = _tool("carve_consensus")
-    rho, R = 10.0, 4.0
-    sphere = trimesh.creation.icosphere(subdivisions=6, radius=rho)
-    samples, _ = trimesh.sample.sample_surface_even(sphere, 300000, seed=0)
-    g = np.random.default_rng(0)
-    n = g.normal(size=(20, 3))
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    got = tool.local_convexity(samples, rho * n, n, R)
-    assert np.allclose(got, -R / (4 * rho), atol=0.01)
-    xy = g.uniform(-20, 20, (200000, 2))
-    plane = np.column_stack([xy, np.zeros(len(xy))])
-    up = np.tile([0.0, 0.0, 1.0], (5, 1))
-    flat = tool.local_convexity(plane, np.column_stack([g.uniform(-5, 5, (5, 2)),
-                                                         np.zeros(5)]), up, R)
-    assert np.allclose(flat, 0.0, atol=1e-12)
-    assert np.isnan(tool.local_convexity(plane, np.array([[0.0, 0.0, 50.0]]), up[:1], R)[0])
