@@ -29,6 +29,8 @@ import statistics
 from collections import defaultdict
 from pathlib import Path
 
+from neus_l0.evaluation.features import kind_overall
+
 
 def run_record(eval_json: Path) -> dict | None:
     """scene, seed, budget, iterations, overall, pit and thin Chamfer, end-to-end seconds of
@@ -39,13 +41,11 @@ def run_record(eval_json: Path) -> dict | None:
     chamfer = rec.get("chamfer") or {}
     if not ckpts or chamfer.get("overall") is None:
         return None
-    kinds = (chamfer.get("features") or {}).get("by_kind") or {}
     spec = rec["spec"]
     return {"scene": Path(spec["scene_dir"]).name, "seed": spec["seed"],
             "budget": spec["budget_s"], "iterations": rec["row"]["iterations"],
             "overall": chamfer["overall"],
-            "pit": (kinds.get("pit") or {}).get("overall"),
-            "thin": (kinds.get("thin") or {}).get("overall"),
+            "pit": kind_overall(chamfer, "pit"), "thin": kind_overall(chamfer, "thin"),
             "wall": ckpts[-1].stat().st_mtime - (run / "spec.json").stat().st_mtime}
 
 

@@ -103,3 +103,10 @@ def kind_errors(pred: np.ndarray, dist_pred: np.ndarray, gt: np.ndarray, dist_gt
         out[kind] = {"accuracy": acc, "completeness": comp, "overall": (acc + comp) / 2,
                      "n_pred": int(in_pred.sum()), "n_gt": int(in_gt.sum())}
     return out
+
+
+def kind_overall(report: dict | None, kind: str) -> float | None:
+    """The Chamfer distance over a score report's features of `kind` ("pit", "thin"; its
+    ``features.by_kind``, `neus_l0.evaluation.score.score_mesh`), None without any."""
+    entry = (((report or {}).get("features") or {}).get("by_kind") or {}).get(kind)
+    return None if entry is None else entry.get("overall")

@@ -212,6 +212,7 @@ def score_run(run_dir: Path, scene_dir: Path, spec: ForkSpec) -> dict:
     import torch
 
     from neus_l0.data.split import split_views, subset_scene
+    from neus_l0.evaluation.features import kind_overall
     from neus_l0.evaluation.sample_distance import SurfaceDistance
     from neus_l0.evaluation.score import ScoreSpec, score_mesh
     from neus_l0.experiments.runner import heldout_psnr
@@ -227,7 +228,6 @@ def score_run(run_dir: Path, scene_dir: Path, spec: ForkSpec) -> dict:
     mesh = export_mesh(made.mesh, run_dir / "mesh.ply")
     score = score_mesh(mesh, ScoreSpec(scene=scene_dir, density=spec.eval_density,
                                        workers=spec.threads), log=lambda _: None)
-    kinds = (score.get("features") or {}).get("by_kind", {})
     full = open_scene(scene_dir, downscale=made.cfg.data.downscale, device="cpu",
                       preview=False)
     train_views, test_views = split_views(full.n_views, spec.holdout)
@@ -241,8 +241,7 @@ def score_run(run_dir: Path, scene_dir: Path, spec: ForkSpec) -> dict:
     return {"iteration": iteration, "train_s": last_log_line(run_dir).get("elapsed"),
             "overall": score["overall"], "accuracy": score["accuracy"],
             "completeness": score["completeness"],
-            "pit": kinds.get("pit", {}).get("overall"),
-            "thin": kinds.get("thin", {}).get("overall"),
+            "pit": kind_overall(score, "pit"), "thin": kind_overall(score, "thin"),
             "sample_dist": dist, "psnr": float(np.mean(psnrs)),
             "sampler": made.cfg.sampler.name, "masses": made.cfg.sampler.l0.masses}
 

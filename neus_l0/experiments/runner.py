@@ -473,6 +473,8 @@ def _done_row(spec: RunSpec, result, score: dict | None, psnrs: list, peak_mb: f
     """A finished run's row of results.csv (`make_row`)."""
     import numpy as np
 
+    from neus_l0.evaluation.features import kind_overall
+
     return make_row(
         **spec.base_row(), status="done", error=None, train_seconds=result.seconds,
         iterations=result.iteration, its_per_s=result.iteration / max(result.seconds, 1e-9),
@@ -481,13 +483,6 @@ def _done_row(spec: RunSpec, result, score: dict | None, psnrs: list, peak_mb: f
         thin=kind_overall(score, "thin"),
         psnr_heldout=float(np.mean(psnrs)) if psnrs else None, peak_mem_mb=peak_mb,
         sample_dist_final=sample_dist, mesh=f"runs/{spec.name}/mesh.ply", mesh_seconds=mesh_s)
-
-
-def kind_overall(score: dict | None, kind: str) -> float | None:
-    """The Chamfer distance over a score's features of `kind` ("pit", "thin"; the report's
-    ``features.by_kind``), None without any."""
-    entry = ((score or {}).get("features") or {}).get("by_kind", {}).get(kind)
-    return None if entry is None else entry.get("overall")
 
 
 def _mesh_stage(spec: RunSpec, timings: dict, report):

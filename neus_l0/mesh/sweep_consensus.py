@@ -33,6 +33,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from neus_l0.errors import NeusL0Error
 from neus_l0.mesh.plane_sweep import INVALID, sweep_depths
 
 MARGIN_PX = 2.0
@@ -127,9 +128,16 @@ def local_convexity(samples: np.ndarray, points: np.ndarray, normals: np.ndarray
 
 
 def _encode(keys: np.ndarray) -> np.ndarray:
-    """(N,) int64 codes of `cell_keys` rows (cells within +-2^15 of the origin, axis 0-5)."""
+    """(N,) int64 codes of `cell_keys` rows: 20 bits per cell index, 3 for the axis.
+
+    Raises:
+        NeusL0Error: a cell index beyond +-2^19 (a mesh over half a million cells across).
+    """
     k = keys.astype(np.int64)
-    return (((k[:, 0] + 2**15) << 40) | ((k[:, 1] + 2**15) << 24) | ((k[:, 2] + 2**15) << 8)
+    if len(k) and np.abs(k[:, :3]).max() >= 2**19:
+        raise NeusL0Error(f"--photo-carve: the mesh spans over 2^19 cells of {CELL_PX:g} pixel "
+                          "footprints; its views' footprints are too small for its size")
+    return (((k[:, 0] + 2**19) << 43) | ((k[:, 1] + 2**19) << 23) | ((k[:, 2] + 2**19) << 3)
             | k[:, 3])
 
 

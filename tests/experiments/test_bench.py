@@ -481,7 +481,7 @@ def test_iteration_matched_effect_recovers_an_exact_offset():
 
 
 def test_a_score_without_features_has_no_pit_or_thin_column():
-    from neus_l0.experiments.runner import kind_overall
+    from neus_l0.evaluation.features import kind_overall
 
     assert kind_overall(None, "pit") is None
     assert kind_overall({"overall": 1.0}, "pit") is None

@@ -8,6 +8,7 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from neus_l0.errors import NeusL0Error
 from neus_l0.mesh import sweep_consensus as sc
 
 
@@ -86,3 +87,17 @@ def test_views_without_concave_pixels_sweep_nothing_and_carve_nothing():
                                             np.zeros((10, 3)))
     assert report == {"swept": 0, "cells": 0, "agreeing": 0, "carving": 0}
     assert len(carve) == 0 and len(rays["z0"]) == 0
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_cell_codes_are_equal_exactly_when_the_keys_are(seed):
+    g = np.random.default_rng(seed)
+    keys = np.column_stack([g.integers(-3, 3, (200, 3)) * int(g.integers(1, 2**17)),
+                            g.integers(0, 6, 200)])
+    codes = sc._encode(keys)
+    for i in range(0, 200, 7):
+        same = (keys == keys[i]).all(1)
+        assert ((codes == codes[i]) == same).all()
+    with pytest.raises(NeusL0Error, match="--photo-carve: the mesh spans over 2"):
+        sc._encode(np.array([[2**19, 0, 0, 1]]))
