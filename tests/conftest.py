@@ -26,6 +26,16 @@ from neus_l0.fields.model import NeuSModel
 from neus_l0.fields.variance import SingleVariance
 
 
+def pytest_configure(config):
+    """Under pytest-xdist (`-n auto` in pyproject.toml) every worker is one process on a
+    shared machine: give each its share of the cores for torch's in-process work, so that
+    two workers on two cores do not run four threads. The commands the tests launch pick
+    their own threads from the machine's load (`neus_l0.device.free_cpu_threads`)."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if workers:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(workers)))
+
+
 @pytest.fixture
 def tiny_demo(monkeypatch):
     """`neus-l0 demo` on a scene of 6 views at 40x30 with ground truth as coarse as
