@@ -32,8 +32,9 @@ def pytest_configure(config):
     two workers on two cores do not run four threads. The commands the tests launch pick
     their own threads from the machine's load (`neus_l0.device.free_cpu_threads`)."""
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
-    if workers:
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(workers)))
+    if workers:  # the cores this process may use, as `neus_l0.device.free_cpu_threads` counts
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        torch.set_num_threads(max(1, (cores or 1) // int(workers)))
 
 
 @pytest.fixture
