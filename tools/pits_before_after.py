@@ -3,7 +3,7 @@ feature of the pits-and-rods scenes, paired run by run.
 
 Usage:
     python tools/pits_before_after.py --out DIR [--scenes cup,well] [--seeds 0,1,2]
-        [--seconds 300] [--device cpu|cuda] [--parallel 2] [--dry-run]
+        [--seconds 300] [--device cpu|cuda] [--parallel 2] [--dry-run | --table-only]
 
 The two arms (the same scene, seed and budget, started together so that they share the
 machine alike):
@@ -19,7 +19,8 @@ finished there is kept (the tool resumes). The bench's config is `demo` on a CPU
 the demo as it ships) and `fast` on CUDA (which has neither term: NOW adds them). A scene
 that is not a folder is synthesised first: ``neus-l0 synth NAME DIR/scenes/NAME-49 --views 49
 --width 400 --height 300``. Then ``DIR/table.md``: `pair_features.py`'s tables of the
-overall error and of the completeness (a floor that one arm lost has no accuracy).
+overall error and of the completeness (a floor that one arm lost has no accuracy);
+``--table-only`` writes it from the runs already there (a campaign stopped part-way).
 
 On a GPU, one command (4 runs, two at a time, about 8 minutes of device time):
     python tools/pits_before_after.py --device cuda --scenes cup --seeds 0,1 --seconds 120
@@ -138,10 +139,15 @@ def main() -> None:
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--parallel", type=int, default=2,
                     help="runs at a time (a pair starts together; default 2)")
-    ap.add_argument("--dry-run", action="store_true", help="print the commands, run none")
+    what = ap.add_mutually_exclusive_group()
+    what.add_argument("--dry-run", action="store_true", help="print the commands, run none")
+    what.add_argument("--table-only", action="store_true",
+                      help="only write DIR/table.md, from the runs already finished")
     args = ap.parse_args()
     synths, pairs = plan(args)
-    if args.dry_run:
+    if args.table_only:
+        pairs, synths = [], []
+    elif args.dry_run:
         for cmd in synths + [c for pair in pairs for c in pair]:
             print(" ".join(cmd))
         return

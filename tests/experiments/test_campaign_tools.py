@@ -9,6 +9,8 @@ import importlib.util
 import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -539,28 +541,32 @@ def test_carve_consensus_runs_on_a_scene_and_writes_its_table(tiny_scene, tmp_pa
         tool.main([str(broken), mesh])
 
 
-def _before_after(monkeypatch):
-    monkeypatch.syspath_prepend(str(TOOLS))  # it imports pair_features as a script does
-    return _tool("pits_before_after")
+
+def _before_after(*args: str) -> str:
+    """`tools/pits_before_after.py ARGS`'s output (run as a script: it imports
+    pair_features from its own folder)."""
+    done = subprocess.run([sys.executable, str(TOOLS / "pits_before_after.py"), *args],
+                          capture_output=True, text=True, check=True)
+    return done.stdout
 
 
-def test_before_after_runs_the_issues_setting_against_the_demos_and_resumes(monkeypatch,
-                                                                            tmp_path):
-    from argparse import Namespace
-
+def test_before_after_runs_the_issues_setting_against_the_demos_and_resumes(tmp_path):
     from neus_l0.config.load import load_config
 
-    pba = _before_after(monkeypatch)
     (tmp_path / "scenes" / "cup-49").mkdir(parents=True)  # already synthesised
     done = tmp_path / "ISSUE_well_1"
     done.mkdir()
     (done / "results.json").write_text("{}")  # finished: kept
-    args = Namespace(scenes=["cup", "well"], seeds=[0, 1], seconds=120.0, device="cpu",
-                     out=tmp_path)
-    synths, pairs = pba.plan(args)
-    assert [c[4:6] for c in synths] == [["well", str(tmp_path / "scenes" / "well-49")]]
-    assert [len(p) for p in pairs] == [2, 2, 2, 1]
-    issue, now = pairs[0]
+    lines = _before_after("--out", str(tmp_path), "--scenes", "cup,well", "--seeds", "0,1",
+                          "--seconds", "120", "--dry-run").splitlines()
+    cmds = [line.split() for line in lines]
+    assert cmds[0][3:6] == ["synth", "well", str(tmp_path / "scenes" / "well-49")]
+    benches = cmds[1:]
+    outs = [c[c.index("--out") + 1] for c in benches]
+    assert [Path(o).name for o in outs] == ["ISSUE_cup_0", "NOW_cup_0", "ISSUE_cup_1",
+                                            "NOW_cup_1", "ISSUE_well_0", "NOW_well_0",
+                                            "NOW_well_1"]
+    issue, now = benches[:2]
     cfg = load_config("demo").train
     for cmd in (issue, now):
         assert cmd[cmd.index("--scenes") + 1] == str(tmp_path / "scenes" / "cup-49")
@@ -570,18 +576,18 @@ def test_before_after_runs_the_issues_setting_against_the_demos_and_resumes(monk
     assert "--close-underside" not in issue and "--fill-missed" in now
     assert f"train.photo.weight={cfg.photo.weight}" in now and cfg.photo.weight > 0
     assert f"train.hit_color_floor={cfg.hit_color_floor}" in now
-    assert now[now.index("--out") + 1] == str(tmp_path / "NOW_cup_0")
-    assert pairs[-1][0][pairs[-1][0].index("--out") + 1] == str(tmp_path / "NOW_well_1")
-    gpu = pba.bench_command("NOW", tmp_path, 0, 60, "cuda", tmp_path / "x")
+    gpu = _before_after("--out", str(tmp_path), "--scenes", "cup", "--seeds", "0",
+                        "--device", "cuda", "--dry-run").split()
     assert "--threads" not in gpu and gpu[gpu.index("--device") + 1] == "cuda"
 
 
-def test_before_after_tables_pair_the_arms_run_by_run(monkeypatch, tmp_path):
-    pba = _before_after(monkeypatch)
+def test_before_after_tables_pair_the_arms_run_by_run(tmp_path):
     for seed, (off, on) in enumerate(((1.0, 0.5), (2.0, 0.8), (1.5, 1.8))):
         _run(tmp_path / f"ISSUE_cup_{seed}", "cup", 300, seed, off, pit=3 * off)
         _run(tmp_path / f"NOW_cup_{seed}", "cup", 300, seed, on, pit=3 * on)
-    text = pba.table(tmp_path, ["cup"], [0, 1, 2])
+    _before_after("--out", str(tmp_path), "--scenes", "cup", "--seeds", "0,1,2",
+                  "--table-only")
+    text = (tmp_path / "table.md").read_text()
     total = next(line for line in text.splitlines() if "| cup | total |" in line)
     assert total.split(" | ")[2:7] == ["3", "1.500", "1.033", "0.69", "2/3"]
     assert "## completeness" in text
