@@ -7,6 +7,8 @@ import shutil
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from neus_l0.cli import main
@@ -17,6 +19,7 @@ from neus_l0.mesh.from_run import plane_to_normalised
 from neus_l0.mesh.underside import (
     camera_up,
     cut_below,
+    lowest_firm,
     seen_counts,
     underside_line,
     underside_plane,
@@ -122,6 +125,45 @@ def test_the_plane_lies_just_under_the_box_and_nothing_without_a_sag():
     assert height > -0.35  # above the apex: the sag is cut
     v, f = trimesh.remesh.subdivide_to_size(*_box(), max_edge=0.1)
     assert underside_plane(trimesh.Trimesh(v, f), P, all_foreground(len(P))) is None
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-50, 50), min_size=1, max_size=40), st.floats(0.1, 10),
+       st.integers(1, 8))
+def test_the_lowest_firm_height_matches_a_plain_count(heights, band, min_ring):
+    h = np.array(heights)
+    firm = [x for x in h if ((h >= x) & (h <= x + band)).sum() >= min_ring]
+    assert lowest_firm(h, band, min_ring) == (min(firm) if firm else h.min())
+
+
+def _spike(mesh, n, z=-0.3):
+    """`mesh` with a small flat patch of about `n` vertices facing +x, hanging beside it at
+    height `z` (outside the sag, 0.3 off the box's side): what the views see of it."""
+    side = max(int(np.ceil(np.sqrt(n))), 2)
+    ys, zs = np.meshgrid(np.linspace(-0.02, 0.02, side), np.linspace(z, z + 0.02, side))
+    v = np.column_stack([np.full(ys.size, 1.3), ys.ravel(), zs.ravel()])
+    i = np.arange(side * side).reshape(side, side)
+    f = np.concatenate([np.column_stack([i[:-1, :-1].ravel(), i[:-1, 1:].ravel(),
+                                         i[1:, 1:].ravel()]),
+                        np.column_stack([i[:-1, :-1].ravel(), i[1:, 1:].ravel(),
+                                         i[1:, :-1].ravel()])])
+    return trimesh.util.concatenate([mesh, trimesh.Trimesh(v[: side * side], f)])
+
+
+def test_a_few_stray_seen_vertices_do_not_lower_the_plane_a_ring_of_them_does():
+    P = rig([20, 45, 70])
+    box = box_with_sag()
+    edge = box.edges_unique_length.mean()
+    stray = _spike(box, 4)  # 2 x 2 vertices: fewer than MIN_RING
+    counts = seen_counts(stray, P, all_foreground(len(P)))
+    assert (counts[len(box.vertices):] > 0).all()  # the views do see them
+    _, height = underside_plane(stray, P, all_foreground(len(P)))
+    assert -edge - 1e-9 <= height < 0.0  # as without them: just under the box
+    _, height = underside_plane(stray, P, all_foreground(len(P)), min_ring=1)
+    assert height < -0.3  # the plain lowest-seen rule goes under the stray patch
+    ring = _spike(box, 9)  # 3 x 3 within one edge: a firm ring
+    _, height = underside_plane(ring, P, all_foreground(len(P)))
+    assert height < -0.3
 
 
 def _box():
