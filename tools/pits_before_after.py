@@ -22,9 +22,11 @@ that is not a folder is synthesised first: ``neus-l0 synth NAME DIR/scenes/NAME-
 overall error and of the completeness (a floor that one arm lost has no accuracy);
 ``--table-only`` writes it from the runs already there (a campaign stopped part-way).
 
-On a GPU, one command (4 runs, two at a time, about 8 minutes of device time):
-    python tools/pits_before_after.py --device cuda --scenes cup --seeds 0,1 --seconds 120
+On a GPU, one command a seed (a pair of 120 s runs started together, with compiling, meshing
+and scoring about 5 minutes, not yet measured; the second call resumes the first's folder):
+    python tools/pits_before_after.py --device cuda --scenes cup --seeds 0 --seconds 120
         --out /tmp/pba
+    (then --seeds 1, and --seeds 0,1 --table-only for the paired table)
 """
 
 from __future__ import annotations
