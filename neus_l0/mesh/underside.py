@@ -130,7 +130,7 @@ def underside_plane(mesh: trimesh.Trimesh, projections: np.ndarray,
     Args:
         mesh: the first mesh (world units).
         projections, masks: the training views (see `seen_counts`).
-        margin: how far below the lowest seen vertex, in mean edge lengths.
+        margin: how far below the lowest seen vertex counted, in mean edge lengths.
         min_views: views that must see a vertex for it to count.
         min_ring: seen vertices within one mean edge above the lowest counted one, itself
             included (`lowest_firm`).
