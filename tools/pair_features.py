@@ -94,6 +94,14 @@ def paired_rows(off: Path | list[Path], on: Path | list[Path], metric: str,
     return rows
 
 
+def markdown_table(rows: list[dict], off: str = "off", on: str = "on") -> list[str]:
+    """`paired_rows`' rows as a Markdown table, the arms' columns named `off` and `on`."""
+    return [f"| scene | feature | pairs | {off} | {on} | {on}/{off} | {on} wins | sign test p |",
+            "|---|---|---:|---:|---:|---:|---:|---:|",
+            *(f"| {r['scene']} | {r['feature']} | {r['pairs']} | {r['off']:.3f} | "
+              f"{r['on']:.3f} | {r['on/off']:.2f} | {r['wins']} | {r['p']:.3f} |" for r in rows)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("off", help="the sweep(s) with the remedy off, comma-separated")
@@ -106,11 +114,7 @@ def main() -> None:
     args = ap.parse_args()
     rows = paired_rows([Path(f) for f in args.off.split(",") if f],
                        [Path(f) for f in args.on.split(",") if f], args.metric, args.eval_name)
-    print("| scene | feature | pairs | off | on | on/off | remedy wins | sign test p |")
-    print("|---|---|---:|---:|---:|---:|---:|---:|")
-    for r in rows:
-        print(f"| {r['scene']} | {r['feature']} | {r['pairs']} | {r['off']:.3f} | "
-              f"{r['on']:.3f} | {r['on/off']:.2f} | {r['wins']} | {r['p']:.3f} |")
+    print("\n".join(markdown_table(rows)))
 
 
 if __name__ == "__main__":

@@ -14,13 +14,14 @@ machine alike):
   steps (``--close-underside --drop-outside-masks --fill-missed``).
 
 Each arm is a ``neus-l0 bench --plan`` sweep of one run (sampler l0, meshes at 256, one
-thread a run on a CPU) in ``DIR/ISSUE_SCENE_SEED`` and ``DIR/NOW_SCENE_SEED``; a run already
-finished there is kept (the tool resumes). The bench's config is `demo` on a CPU (so NOW is
-the demo as it ships) and `fast` on CUDA (which has neither term: NOW adds them). A scene
-that is not a folder is synthesised first: ``neus-l0 synth NAME DIR/scenes/NAME-49 --views 49
---width 400 --height 300``. Then ``DIR/table.md``: `pair_features.py`'s tables of the
-overall error and of the completeness (a floor that one arm lost has no accuracy);
-``--table-only`` writes it from the runs already there (a campaign stopped part-way).
+thread a run on a CPU) in ``DIR/ISSUE_SCENE_SEED`` and ``DIR/NOW_SCENE_SEED``; re-running
+resumes, as `bench` skips a run its status records as done. The bench's config is `demo` on
+a CPU (so NOW is the demo as it ships) and `fast` on CUDA (which has neither term: NOW adds
+them). A scene that is not a folder is synthesised first: ``neus-l0 synth NAME
+DIR/scenes/NAME-49 --views 49 --width 400 --height 300``. Then ``DIR/table.md``:
+`pair_features.py`'s tables of the overall error and of the completeness (a floor that one
+arm lost has no accuracy); ``--table-only`` writes it from the runs already there (a
+campaign stopped part-way).
 
 On a GPU, one command a seed (a pair of 120 s runs started together, with compiling, meshing
 and scoring about 5 minutes, not yet measured; the second call resumes the first's folder):
@@ -36,7 +37,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from pair_features import paired_rows
+from pair_features import markdown_table, paired_rows
 
 from neus_l0.atomic import atomic_write_text
 from neus_l0.config.load import load_config
@@ -83,31 +84,26 @@ def scene_folder(name: str, root: Path) -> tuple[Path, list[str] | None]:
 
 
 def plan(args: argparse.Namespace) -> tuple[list[list[str]], list[list[list[str]]]]:
-    """(synthesis commands, the pairs of bench commands still to run)."""
+    """(synthesis commands, the pairs of bench commands: ISSUE then NOW per scene and seed)."""
     synths, pairs = [], []
     for name in args.scenes:
         folder, synth = scene_folder(name, args.out)
         if synth:
             synths.append(synth)
-        for seed in args.seeds:
-            pair = []
-            for arm in ("ISSUE", "NOW"):
-                out = args.out / f"{arm}_{Path(name).name}_{seed}"
-                if not (out / "results.json").exists():
-                    pair.append(bench_command(arm, folder, seed, args.seconds, args.device,
-                                              out))
-            if pair:
-                pairs.append(pair)
+        pairs += [[bench_command(arm, folder, seed, args.seconds, args.device,
+                                 args.out / f"{arm}_{Path(name).name}_{seed}")
+                   for arm in ("ISSUE", "NOW")] for seed in args.seeds]
     return synths, pairs
 
 
 def run_together(commands: list[list[str]], log_dir: Path) -> None:
-    """Start `commands` at once and wait for them all; a failure names its log."""
+    """Start `commands` at once and wait for them all; each appends to its log
+    (``DIR/log_ARM_SCENE_SEED.txt``: an earlier attempt's stays), a failure names it."""
     procs = []
     for cmd in commands:
         log = log_dir / f"log_{Path(cmd[cmd.index('--out') + 1]).name}.txt"
-        procs.append((subprocess.Popen(cmd, stdout=log.open("w"), stderr=subprocess.STDOUT),
-                      log))
+        with log.open("a") as f:  # the child holds its own descriptor
+            procs.append((subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT), log))
     failed = [str(log) for p, log in procs if p.wait() != 0]
     if failed:
         raise SystemExit(f"pits_before_after: a bench run failed; see {', '.join(failed)}")
@@ -120,14 +116,17 @@ def table(out: Path, scenes: list[str], seeds: list[int]) -> str:
     on = [out / f"NOW_{n}" for n in names]
     lines = []
     for metric in ("overall", "completeness"):
-        lines += [f"## {metric} (ISSUE = off, NOW = on)", "",
-                  "| scene | feature | pairs | ISSUE | NOW | ratio | NOW lower | sign test p |",
-                  "|---|---|---:|---:|---:|---:|---:|---:|"]
-        lines += [f"| {r['scene']} | {r['feature']} | {r['pairs']} | {r['off']:.3f} | "
-                  f"{r['on']:.3f} | {r['on/off']:.2f} | {r['wins']} | {r['p']:.3f} |"
-                  for r in paired_rows(off, on, metric, "eval.json")]
-        lines.append("")
+        rows = paired_rows(off, on, metric, "eval.json")
+        lines += [f"## {metric}", "", *markdown_table(rows, "ISSUE", "NOW"), ""]
     return "\n".join(lines)
+
+
+def _seeds(text: str) -> list[int]:
+    try:
+        return [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: seeds are integers, comma-separated") from None
 
 
 def main() -> None:
@@ -135,8 +134,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True, help="the campaign's folder")
     ap.add_argument("--scenes", type=lambda s: s.split(","), default=["cup", "well"],
                     help="synthetic scene names or scene folders, comma-separated")
-    ap.add_argument("--seeds", type=lambda s: [int(x) for x in s.split(",")],
-                    default=[0, 1, 2])
+    ap.add_argument("--seeds", type=_seeds, default=[0, 1, 2], help="e.g. 0,1,2")
     ap.add_argument("--seconds", type=float, default=300.0, help="each run's budget")
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     ap.add_argument("--parallel", type=int, default=2,
@@ -155,15 +153,12 @@ def main() -> None:
         return
     args.out.mkdir(parents=True, exist_ok=True)
     for cmd in synths:
-        subprocess.run(cmd, check=True)
-    batch: list[list[str]] = []
-    for pair in pairs:
-        if batch and len(batch) + len(pair) > max(args.parallel, len(pair)):
-            run_together(batch, args.out)
-            batch = []
-        batch += pair
-    if batch:
-        run_together(batch, args.out)
+        if subprocess.run(cmd).returncode != 0:
+            raise SystemExit(f"pits_before_after: could not synthesise {cmd[4]!r} into "
+                             f"{cmd[5]} (a built-in scene name or a scene folder)")
+    per_batch = max(1, args.parallel // 2)  # pairs started together
+    for i in range(0, len(pairs), per_batch):
+        run_together([c for pair in pairs[i:i + per_batch] for c in pair], args.out)
     text = table(args.out, args.scenes, args.seeds)
     atomic_write_text(args.out / "table.md", text)
     print(text)

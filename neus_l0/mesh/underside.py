@@ -20,7 +20,7 @@ This module finds the plane to close it at, from a first mesh (world units):
   (itself among them) must lie within one mean edge above it. The sag's rim, 1-2 pixels
   outside the silhouettes, can show a few vertices inside a mask; on the demo's seed 2
   (2026-11-29) seven such, the lowest 4.7 units under the base, put the plane 6.1 units
-  under it, and the rim it left raised the accuracy 0.74 -> 0.95.
+  under the base, and the rim it left raised the accuracy 0.74 -> 0.95.
 
 Everything below that plane is below every vertex the views see: cutting it removes only
 what no view saw. `cut_below` then intersects the SDF with the half-space above the plane
@@ -112,8 +112,9 @@ def seen_counts(mesh: trimesh.Trimesh, projections: np.ndarray,
 
 
 def lowest_firm(heights: np.ndarray, band: float, min_ring: int) -> float:
-    """The lowest of (N,) `heights` that has `min_ring` of them (itself included) within
-    `band` above it; the lowest of all when none has (fewer than `min_ring` in any band)."""
+    """The lowest of (N,) `heights` (N >= 1) that has `min_ring` of them (itself included)
+    within `band` above it; the lowest of all when none has (fewer than `min_ring` in any
+    band)."""
     h = np.sort(np.asarray(heights, dtype=np.float64))
     ring = np.searchsorted(h, h + band, side="right") - np.arange(len(h))  # (N,) in [h, h + band]
     firm = np.flatnonzero(ring >= min_ring)

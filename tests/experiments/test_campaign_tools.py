@@ -550,13 +550,10 @@ def _before_after(*args: str) -> str:
     return done.stdout
 
 
-def test_before_after_runs_the_issues_setting_against_the_demos_and_resumes(tmp_path):
+def test_before_after_runs_the_issues_setting_against_the_demos(tmp_path):
     from neus_l0.config.load import load_config
 
-    (tmp_path / "scenes" / "cup-49").mkdir(parents=True)  # already synthesised
-    done = tmp_path / "ISSUE_well_1"
-    done.mkdir()
-    (done / "results.json").write_text("{}")  # finished: kept
+    (tmp_path / "scenes" / "cup-49").mkdir(parents=True)  # already synthesised: not again
     lines = _before_after("--out", str(tmp_path), "--scenes", "cup,well", "--seeds", "0,1",
                           "--seconds", "120", "--dry-run").splitlines()
     cmds = [line.split() for line in lines]
@@ -565,7 +562,7 @@ def test_before_after_runs_the_issues_setting_against_the_demos_and_resumes(tmp_
     outs = [c[c.index("--out") + 1] for c in benches]
     assert [Path(o).name for o in outs] == ["ISSUE_cup_0", "NOW_cup_0", "ISSUE_cup_1",
                                             "NOW_cup_1", "ISSUE_well_0", "NOW_well_0",
-                                            "NOW_well_1"]
+                                            "ISSUE_well_1", "NOW_well_1"]
     issue, now = benches[:2]
     cfg = load_config("demo").train
     for cmd in (issue, now):
@@ -590,4 +587,16 @@ def test_before_after_tables_pair_the_arms_run_by_run(tmp_path):
     text = (tmp_path / "table.md").read_text()
     total = next(line for line in text.splitlines() if "| cup | total |" in line)
     assert total.split(" | ")[2:7] == ["3", "1.500", "1.033", "0.69", "2/3"]
-    assert "## completeness" in text
+    assert "## completeness" in text and "| ISSUE | NOW | NOW/ISSUE |" in text
+
+
+def test_before_after_names_what_it_cannot_do(tmp_path):
+    def fails(*args: str) -> str:
+        done = subprocess.run([sys.executable, str(TOOLS / "pits_before_after.py"), *args],
+                              capture_output=True, text=True)
+        assert done.returncode != 0
+        return done.stderr
+
+    assert "seeds are integers" in fails("--out", str(tmp_path), "--seeds", "0,x", "--dry-run")
+    err = fails("--out", str(tmp_path), "--scenes", "no-such-scene", "--seeds", "0")
+    assert "could not synthesise 'no-such-scene'" in err

@@ -147,7 +147,7 @@ def _spike(mesh, n, z=-0.3):
                                          i[1:, 1:].ravel()]),
                         np.column_stack([i[:-1, :-1].ravel(), i[1:, 1:].ravel(),
                                          i[1:, :-1].ravel()])])
-    return trimesh.util.concatenate([mesh, trimesh.Trimesh(v[: side * side], f)])
+    return trimesh.util.concatenate([mesh, trimesh.Trimesh(v, f)])
 
 
 def test_a_few_stray_seen_vertices_do_not_lower_the_plane_a_ring_of_them_does():
