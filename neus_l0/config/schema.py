@@ -518,6 +518,10 @@ class TrainConfig:
     step rate drifts later, the rest of the schedule is compressed (or stretched) to end in
     time. Without ``--conf``, `neus-l0 train` takes the device's setting and its capacity
     for the budget (`neus_l0.train.budget.LADDER`)."""
+    budget_up_to_iters: bool = False
+    """With `budget`: plan at most `iters` iterations. Where the config's schedule fits, the
+    run trains it as is and ends early; where it does not, it is compressed to the budget
+    (`neus-l0 demo`: at most 3500 iterations within its 150 s)."""
     early_stop: bool = False
     """Stop when the surface stops moving: an SDF probe on points near the surface
     (`neus_l0.train.early_stop`); off by default (not yet measured to pay)."""

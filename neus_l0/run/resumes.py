@@ -26,7 +26,7 @@ RESUMES_FILE = "resumes.jsonl"
 FREE_ON_RESUME = frozenset({
     "train.iters", "train.max_seconds", "train.log_every", "train.val_every",
     "train.val_downscale", "train.save_every", "train.keep_checkpoints", "train.tensorboard",
-    "train.compile", "train.threads", "render.chunk",
+    "train.compile", "train.threads", "train.budget_up_to_iters", "render.chunk",
 })
 
 

@@ -48,7 +48,8 @@ class Plan:
     Attributes:
         budget_s: the budget; spent_s: already spent when planning (start-up, compile,
             the measured steps); iters: the planned iterations; costs: the measurements;
-        overhead_s: the validations, checkpoints and reserve set aside.
+        overhead_s: the validations, checkpoints and reserve set aside; most: the ceiling
+            on the iterations (0: none; ``train.budget_up_to_iters``).
     """
 
     budget_s: float
@@ -56,12 +57,18 @@ class Plan:
     iters: int
     costs: StepCosts
     overhead_s: float
+    most: int = 0
 
     @property
     def spare_s(self) -> float:
-        """Seconds the plan leaves unused (`MARGIN` of the time for steps)."""
-        return max(0.0, self.budget_s - self.spent_s - self.overhead_s
-                   - self.iters * self.costs.step_s)
+        """Seconds the plan leaves unused: `MARGIN` of the time for steps (a plan the
+        ceiling `most` cut leaves more unused; its spare is still the margin, so that a
+        re-target fills the budget less the margin)."""
+        free = self.budget_s - self.spent_s - self.overhead_s
+        unused = free - self.iters * self.costs.step_s
+        if 0 < self.most == self.iters:
+            unused = min(unused, MARGIN * free + self.costs.step_s)
+        return max(0.0, unused)
 
     @property
     def estimated_s(self) -> float:
@@ -77,21 +84,24 @@ class Plan:
 
 
 def plan_iterations(budget_s: float, spent_s: float, costs: StepCosts, n_val: int,
-                    n_ckpt: int) -> Plan:
+                    n_ckpt: int, most: int = 0) -> Plan:
     """The iterations that fit in `budget_s` when `spent_s` is gone.
 
     Args:
         n_val, n_ckpt: validations and checkpoints the planned schedule holds (their number
             does not depend on the iterations: the landmarks scale with them); the final
             checkpoint is always added.
+        most: plan no more than this many (0: no ceiling).
 
     Returns:
-        a `Plan`; its ``iters`` is 0 when not even `MIN_ITERS` fit.
+        a `Plan`; its ``iters`` is 0 when not even `MIN_ITERS` (or `most`, if fewer) fit.
     """
     overhead = n_val * costs.val_s + (n_ckpt + 1) * costs.ckpt_s + RESERVE_S
     left = (budget_s - spent_s - overhead) * (1.0 - MARGIN)
-    iters = int(left // costs.step_s) if costs.step_s > 0 and left > 0 else 0
-    return Plan(budget_s, spent_s, iters if iters >= MIN_ITERS else 0, costs, overhead)
+    fit = int(left // costs.step_s) if costs.step_s > 0 and left > 0 else 0
+    least = min(MIN_ITERS, most) if most > 0 else MIN_ITERS
+    iters = min(fit, most) if most > 0 else fit
+    return Plan(budget_s, spent_s, iters if fit >= least else 0, costs, overhead, most)
 
 
 def event_counts(cfg: Config) -> tuple[int, int]:
@@ -122,7 +132,7 @@ def planned_config(cfg: Config, iters: int) -> Config:
         t, iters=iters, warm_up=_scaled(t.warm_up, r, 1), anneal_end=_scaled(t.anneal_end, r, 1),
         lr_decay_iters=_scaled(t.lr_decay_iters, r, 1),
         val_every=_scaled(t.val_every, r, 1), save_every=_scaled(t.save_every, r, 1),
-        budget=0.0, max_seconds=0.0)
+        budget=0.0, max_seconds=0.0, budget_up_to_iters=False)
     enc = cfg.model.sdf.encoding
     enc = dataclasses.replace(enc, update_steps=_scaled(enc.update_steps, r, 1))
     sdf = dataclasses.replace(cfg.model.sdf, encoding=enc)
@@ -182,7 +192,7 @@ class ScheduleWarp:
 
 
 def retarget_end(iteration: int, end: int, left_s: float, step_s: float,
-                 spare_s: float) -> int | None:
+                 spare_s: float, most: int = 0) -> int | None:
     """A new end when the rest of the schedule would eat more than half the plan's spare
     time (`Plan.spare_s`) or leave more than twice it unused.
 
@@ -190,11 +200,11 @@ def retarget_end(iteration: int, end: int, left_s: float, step_s: float,
         iteration: now; end: the current end; left_s: seconds left for steps (the budget
             less the time spent and the reserve); step_s: the recent seconds per iteration
             (including the loop's logging, validation and checkpoints); spare_s: the
-            seconds the plan left unused.
+            seconds the plan left unused; most: no end past this (0: no ceiling).
 
     Returns:
-        the end that fills `left_s` less `spare_s` at `step_s`, or None when the rest
-        fits or the run is at its end.
+        the end that fills `left_s` less `spare_s` at `step_s` (at most `most`), or None
+        when the rest fits or the run is at its end.
     """
     need = (end - iteration) * step_s
     if step_s <= 0 or end - iteration <= 1:
@@ -202,6 +212,8 @@ def retarget_end(iteration: int, end: int, left_s: float, step_s: float,
     if left_s - 2.0 * spare_s <= need <= left_s - 0.5 * spare_s:
         return None
     new = iteration + max(1, math.floor((left_s - spare_s) / step_s))
+    if most > 0:
+        new = min(new, most)
     return new if new != end else None
 
 

@@ -88,7 +88,9 @@ def plan_run(run: RunState, started: float) -> BudgetKeeper:
     """
     budget = run.cfg.train.budget
     costs = measure_costs(run, seconds=min(3.0, max(0.5, 0.01 * budget)))
-    plan = plan_iterations(budget, time.monotonic() - started, costs, *event_counts(run.cfg))
+    most = run.cfg.train.iters if run.cfg.train.budget_up_to_iters else 0
+    plan = plan_iterations(budget, time.monotonic() - started, costs, *event_counts(run.cfg),
+                           most=most)
     if plan.iters == 0:
         raise BudgetTooShort(plan.spent_s, costs.step_s,
                              plan.spent_s + plan.overhead_s + 50 * costs.step_s)
@@ -137,7 +139,7 @@ class BudgetKeeper(TrainingCallback):
             return  # judge the rate over `window` log intervals
         step_s = (t1 - t0) / (i1 - i0)
         end = retarget_end(run.iteration, run.end, self.left_for_steps(), step_s,
-                           self.plan.spare_s)
+                           self.plan.spare_s, self.plan.most)
         if end is None:
             return
         was = run.end

@@ -74,7 +74,8 @@ UNSEEN_FACTOR = 30.0
 #: outside it); everything else in the config is part of the record's key.
 _NOT_IN_GRAPH = ("iters", "lr", "lr_alpha", "lr_decay_iters", "warm_up", "seed", "log_every",
                  "val_every", "val_downscale", "save_every", "keep_checkpoints", "max_seconds",
-                 "compile", "tensorboard", "threads", "budget", "early_stop")
+                 "compile", "tensorboard", "threads", "budget", "budget_up_to_iters",
+                 "early_stop")
 
 
 def step_key(cfg: Config, device: str) -> str:
@@ -190,9 +191,9 @@ def machine_speed(measured_s: float | None, modelled_s: float) -> float:
 
 def _steps_time(cfg: Config, start_iteration: int, step: float) -> float:
     """Seconds of eager steps the run would take (a budget fills its time with steps)."""
-    if cfg.train.budget > 0:
-        return cfg.train.budget
     left = max(0, cfg.train.iters - start_iteration) * step
+    if cfg.train.budget > 0:
+        return min(cfg.train.budget, left) if cfg.train.budget_up_to_iters else cfg.train.budget
     return min(left, cfg.train.max_seconds) if cfg.train.max_seconds > 0 else left
 
 

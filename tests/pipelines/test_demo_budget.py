@@ -48,3 +48,40 @@ def test_the_demo_trains_a_planned_budget_and_a_rerun_reuses_it(small, tiny_demo
 def test_bad_demo_budgets_get_one_line(bad, refused, tmp_path):
     refused(["demo", "--out", str(tmp_path / "d"), f"--budget={bad}"], "--budget", alone=True)
     assert not (tmp_path / "d").exists()
+
+
+def test_the_default_demo_fits_its_time_compressing_a_schedule_that_does_not(
+        small, tiny_demo, tmp_path, monkeypatch, capsys):
+    """Without --budget the demo plans at most the config's iterations within what is left
+    of `DEMO_BUDGET_S` since the process started, less `DEMO_RESERVE_S`: 100000 iterations
+    do not fit a 14 s training stage and are compressed to it, schedule finished."""
+    from neus_l0.pipelines import demo
+
+    monkeypatch.setattr("neus_l0.train.run_config.process_seconds", lambda: 0.0)
+    monkeypatch.setattr(demo, "DEMO_BUDGET_S", demo.DEMO_RESERVE_S + 14.0)
+    monkeypatch.setattr(demo, "DEMO_MIN_TRAIN_S", 1.0)
+    out = tmp_path / "demo"
+    argv = ["demo", "--out", str(out), "--quiet", "--resolution", "40", "--threads", "1",
+            *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
+            "train.iters=100000", "train.val_every=0", "train.compile=false"]
+    assert main(argv) == 0
+    plan = json.loads((out / "run" / "budget.json").read_text())
+    recorded = load_config(out / "run" / "config.yaml")
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert plan["budget_s"] == 14.0 and 20 <= plan["planned_iters"] < 100000
+    assert recorded.train.iters == plan["planned_iters"] and not recorded.train.budget_up_to_iters
+    assert metrics["iterations"] == plan["done_iters"] and plan["steps_end_s"] <= 14.0
+    assert "at most 100000 iterations, fitted to 14 s" in capsys.readouterr().out
+    assert metrics["timings"]["process_s"] >= 0
+
+
+def test_the_default_demo_keeps_a_schedule_that_fits(small, tiny_demo, tmp_path, monkeypatch):
+    """A schedule that fits the demo's time is trained as the config has it, not stretched."""
+    monkeypatch.setattr("neus_l0.train.run_config.process_seconds", lambda: 0.0)
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--quiet", "--resolution", "40", "--threads", "1",
+                 *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
+                 "train.iters=30", "train.val_every=0", "train.compile=false"]) == 0
+    plan = json.loads((out / "run" / "budget.json").read_text())
+    assert plan["planned_iters"] == plan["done_iters"] == 30
+    assert load_config(out / "run" / "config.yaml").train.iters == 30

@@ -121,10 +121,10 @@ def test_retarget_only_when_the_rest_overruns_or_leaves_time_unused():
     assert retarget_end(999, 1000, left_s=0.0, step_s=1.0, spare_s=4.0) is None  # at its end
 
 
-def _simulate(budget, start_s, step_s, slow_after_s, slowdown, log_every=50):
+def _simulate(budget, start_s, step_s, slow_after_s, slowdown, log_every=50, most=0):
     """A run on a fake clock: plan from the first rate, slow down later, retarget at logs."""
     costs = StepCosts(step_s, ckpt_s=0.2)
-    plan = plan_iterations(budget, start_s, costs, 0, 0)
+    plan = plan_iterations(budget, start_s, costs, 0, 0, most=most)
     warp, now, i = ScheduleWarp(plan.iters, plan.iters), start_s, 0
     marks = [(now, 0)]
     while i < warp.end:
@@ -133,7 +133,8 @@ def _simulate(budget, start_s, step_s, slow_after_s, slowdown, log_every=50):
         if i % log_every == 0:
             marks = (marks + [(now, i)])[-4:]
             rate = (marks[-1][0] - marks[0][0]) / (marks[-1][1] - marks[0][1])
-            end = retarget_end(i, warp.end, budget - now - 0.2 - RESERVE_S, rate, plan.spare_s)
+            end = retarget_end(i, warp.end, budget - now - 0.2 - RESERVE_S, rate, plan.spare_s,
+                               plan.most)
             if end is not None:
                 warp = warp.retarget(i, end)
     return plan, warp, now + 0.2  # the final checkpoint
@@ -149,6 +150,45 @@ def test_a_run_on_a_fake_clock_ends_in_time_with_its_schedule_finished(slowdown)
         assert not warp.warped and plan.spare_s > 0
     else:
         assert warp.warped and (warp.end < plan.iters) == (slowdown > 1)
+
+
+def test_a_ceiling_caps_the_plan_and_lets_a_short_schedule_through():
+    costs = StepCosts(step_s=0.1, val_s=1.0, ckpt_s=0.5)
+    free = plan_iterations(240.0, 30.0, costs, 7, 3)
+    assert plan_iterations(240.0, 30.0, costs, 7, 3, most=500).iters == 500
+    assert plan_iterations(240.0, 30.0, costs, 7, 3, most=10 * free.iters).iters == free.iters
+    assert plan_iterations(240.0, 30.0, costs, 7, 3, most=5).iters == 5  # under MIN_ITERS
+    assert plan_iterations(10.0, 9.0, costs, 0, 0, most=5).iters == 0  # nothing fits
+    capped = plan_iterations(240.0, 30.0, costs, 7, 3, most=500)
+    # the spare a re-target keeps is the margin, not the time the ceiling left unused
+    assert capped.spare_s == pytest.approx(MARGIN * (240 - 30 - capped.overhead_s) + 0.1)
+
+
+@settings(max_examples=200, deadline=None)
+@given(budget=st.floats(5, 5000), spent=st.floats(0, 100), step=st.floats(1e-3, 2.0),
+       most=st.integers(1, 100000))
+def test_a_ceiling_never_plans_more_nor_past_the_budget(budget, spent, step, most):
+    costs = StepCosts(step_s=step, val_s=0.3, ckpt_s=0.2)
+    free = plan_iterations(budget, spent, costs, 2, 1)
+    capped = plan_iterations(budget, spent, costs, 2, 1, most=most)
+    assert capped.iters <= most and capped.estimated_s <= max(budget, spent + capped.overhead_s)
+    if free.iters:
+        assert capped.iters == min(free.iters, most)
+
+
+@pytest.mark.parametrize("slowdown", [1.0, 0.5, 2.0, 8.0])
+def test_a_capped_run_never_stretches_past_its_ceiling_and_compresses_to_fit(slowdown):
+    """`train.budget_up_to_iters` (the demo): 1000 iterations of 50 ms fit a 240 s budget
+    with time to spare; faster steps do not lengthen them, slower ones compress them."""
+    plan, warp, end_s = _simulate(240.0, 20.0, 0.05, slow_after_s=40.0, slowdown=slowdown,
+                                  most=1000)
+    assert plan.iters == 1000 and warp.end <= 1000
+    assert warp.at(warp.end) == plan.iters  # the schedule reached its end
+    assert end_s <= 240.0 - RESERVE_S + 1e-6
+    if slowdown <= 2.0:  # slower steps that still fit are waited for
+        assert warp.end == 1000 and end_s < 0.5 * 240
+    else:  # 600 more steps of 400 ms do not fit: compressed to fill the budget
+        assert warp.end < 1000 and end_s > 0.85 * 240
 
 
 def test_the_device_default_and_its_ladder():
