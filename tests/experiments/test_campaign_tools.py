@@ -324,6 +324,55 @@ def test_source_visibility_sees_each_pixel_from_its_own_view_and_counts_shares(t
         assert m["share_seen_by"][0] <= r["share_seen_by"][0] + 1e-12
 
 
+def test_photo_cost_profile_scores_a_view_against_itself_as_perfect_at_any_offset(tiny_scene):
+    """A view as its own source: every plane through a point on a pixel's ray carries the
+    patch back onto itself, so the cost is 0 at every offset; with the real sources, each
+    feature's shares of the lowest offset sum to 1 and a view sees its own hits."""
+    import dataclasses
+
+    import numpy as np
+    import torch
+
+    from neus_l0.data.patches import ncc
+    from neus_l0.evaluation.synthetic import first_hits
+    from neus_l0.formats.neus import load_scene
+    from neus_l0.train.photometric import PhotoContext, sample_gray
+
+    tool = _tool("photo_cost_profile")
+    scene = load_scene(tiny_scene)
+    ctx = PhotoContext.from_scene(scene, 3, 3, 1, 2)
+    own = dataclasses.replace(ctx, sources=torch.arange(scene.n_views)[:, None])
+    pts, depth, projections = first_hits(tiny_scene)
+    ys, xs = np.nonzero(np.isfinite(pts[0, ..., 0]))
+    keep = (xs > 2) & (xs < scene.width - 3) & (ys > 2) & (ys < scene.height - 3)
+    xy = torch.tensor(np.stack([xs[keep], ys[keep]], -1), dtype=torch.float32)
+    scale, centre = float(scene.scale_mat[0, 0]), np.asarray(scene.scale_mat[:3, 3])
+    cam = scene.c2w[0, :3, 3].double().numpy()
+    pix = xy[:, None, :] + ctx.offsets[None]
+    ref, _ = sample_gray(ctx.gray, ctx.height, ctx.width, torch.zeros(1, dtype=torch.long), pix)
+    itself = (1.0 - ncc(ref, ref[:, None, :])) * 0.5  # 0 but for ncc's eps on flat patches
+    for d in (-0.05, 0.0, 0.1):  # normalised units along each ray
+        xw = (pts[0][ys[keep], xs[keep]] - centre) / scale
+        ray = (xw - cam) / np.linalg.norm(xw - cam, axis=-1, keepdims=True)
+        x = torch.tensor(xw + d * ray, dtype=torch.float32)
+        normal = torch.tensor(cam - xw, dtype=torch.float32)  # facing the camera
+        cost, valid = tool.source_costs(own, 0, xy, x, normal / normal.norm(dim=-1,
+                                                                             keepdim=True))
+        assert valid.float().mean() > 0.9
+        assert torch.allclose(cost[valid[:, 0]], itself[valid[:, 0]], atol=1e-4)
+    seen = tool.sees(pts[0][ys, xs], np.zeros((len(xs), 1), dtype=int), depth, projections, 0.5)
+    assert seen.all()
+    rows = tool.profile(tiny_scene, None, [-2.0, 0.0, 2.0], 3, 2, 1.0, 50, 1.5)
+    assert rows
+    for r in rows:
+        assert len(r["mean_cost"]) == 3 and 0 <= r["counted"] <= r["pixels"]
+        assert r["counted"] == 0 or abs(sum(r["lowest_at"]) - 1) < 1e-9
+        for q in (r["seen_quantiles"], r["hidden_quantiles"]):
+            assert q == sorted(q)
+    with pytest.raises(SystemExit, match="no feature named"):
+        tool.profile(tiny_scene, ["no such"], [0.0], 3, 2, 1.0, 50, 1.5)
+
+
 def test_floor_height_keeps_the_vertices_over_the_floor_and_measures_their_rise():
     import numpy as np
 
