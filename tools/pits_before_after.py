@@ -144,6 +144,8 @@ def main() -> None:
     what.add_argument("--table-only", action="store_true",
                       help="only write DIR/table.md, from the runs already finished")
     args = ap.parse_args()
+    if args.out.exists() and not args.out.is_dir():
+        raise SystemExit(f"pits_before_after: --out {args.out}: is a file, not a folder")
     synths, pairs = plan(args)
     if args.table_only:
         pairs, synths = [], []

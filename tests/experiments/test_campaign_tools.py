@@ -649,3 +649,5 @@ def test_before_after_names_what_it_cannot_do(tmp_path):
     assert "seeds are integers" in fails("--out", str(tmp_path), "--seeds", "0,x", "--dry-run")
     err = fails("--out", str(tmp_path), "--scenes", "no-such-scene", "--seeds", "0")
     assert "could not synthesise 'no-such-scene'" in err
+    (tmp_path / "a-file").write_text("")
+    assert "is a file, not a folder" in fails("--out", str(tmp_path / "a-file"), "--dry-run")
