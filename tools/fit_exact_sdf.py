@@ -7,10 +7,14 @@ steps (lr 3e-3, cosine to 5 %) on 4096 points a step near the true surface (its
 ``gt_points.ply`` jittered by 1 or 4 world units) and 1024 uniform in the unit sphere's box:
 L1 to the exact SDF plus 0.1 x the Eikonal term. Prints the mean L1 (world units) as it
 goes, then the lowest SDF across the rod (a 6-unit segment through its axis along x) at
-four heights, fitted against exact: a rod the network holds reads negative.
+four heights, fitted against exact: a rod the network holds reads negative. With `--mesh
+OUT.ply` the fitted SDF's zero level is also written in world units (marching cubes at
+`--resolution`), for `neus-l0 eval OUT.ply --scene SCENE`: what the network can hold at each
+feature when training is no limit (a deep pit's floor, issue #35).
 
     python tools/fit_exact_sdf.py SCENE --axis=-63,-53 --z 55,110 [--steps 3000]
-                                  [--conf demo] [override ...]
+                                  [--conf demo] [--mesh OUT.ply [--resolution 256]]
+                                  [override ...]
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import trimesh
 from neus_l0.config.load import load_config
 from neus_l0.errors import NeusL0Error
 from neus_l0.fields.model import make_model
+from neus_l0.mesh.extract import export_mesh, marching_cubes, sdf_grid
 from neus_l0.synthetic.scene import scene_world_sdf
 
 
@@ -84,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--z", required=True, help="the rod's bottom and top z (world units)")
     ap.add_argument("--steps", type=int, default=3000, help="Adam steps (3000)")
     ap.add_argument("--conf", default="demo", help="the config whose SDF network is fitted")
+    ap.add_argument("--mesh", type=Path, help="also write the fitted zero level here")
+    ap.add_argument("--resolution", type=int, default=256, help="its marching cubes (256)")
     ap.add_argument("overrides", nargs="*", help="config overrides, e.g. "
                     "model.sdf.encoding.finest_resolution=128")
     a = ap.parse_args(argv)
@@ -126,7 +133,19 @@ def main(argv: list[str] | None = None) -> int:
     minima = rod_minima(net, sdf_world, center, radius, (ax, ay), heights)
     for h, (got, want) in zip(heights, minima, strict=True):
         print(f"| {h:.1f} | {got:+.2f} | {want:+.2f} |")
+    if a.mesh is not None:
+        export_mesh(fitted_mesh(net, center, radius, a.resolution), a.mesh)
+        print(f"wrote {a.mesh}")
     return 0
+
+
+def fitted_mesh(net: torch.nn.Module, center: np.ndarray, radius: float,
+                resolution: int) -> trimesh.Trimesh:
+    """The fitted SDF's zero level (marching cubes on [-1, 1]^3 at `resolution`) in world
+    units."""
+    volume = sdf_grid(lambda x: net(x, count=False)[:, 0], resolution)
+    verts, faces = marching_cubes(volume)
+    return trimesh.Trimesh(verts * radius + center, faces, process=False)
 
 
 if __name__ == "__main__":

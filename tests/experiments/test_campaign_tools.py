@@ -484,6 +484,14 @@ def test_fit_exact_sdf_lowers_the_error_and_probes_a_rod_as_its_radius(tiny_scen
 
     rows = tool.rod_minima(Net(), cylinder, np.full(3, 1.0), 10.0, (2.0, 3.0), [0.0, 5.0])
     assert [r for pair in rows for r in pair] == pytest.approx([-1.5] * 4, abs=1e-3)
+
+    class Ball(torch.nn.Module):  # radius 0.5 at the origin, normalised
+        def forward(self, x, count=True):
+            return (x.norm(dim=-1) - 0.5)[:, None]
+
+    mesh = tool.fitted_mesh(Ball(), np.array([10.0, 20.0, 30.0]), 4.0, 64)
+    r = np.linalg.norm(np.asarray(mesh.vertices) - [10.0, 20.0, 30.0], axis=-1)
+    assert r == pytest.approx(np.full(len(r), 2.0), abs=0.02)  # 0.5 x 4 world units
     from neus_l0.config.load import load_config
     from neus_l0.fields.model import make_model
 

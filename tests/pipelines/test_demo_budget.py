@@ -74,14 +74,3 @@ def test_the_default_demo_fits_its_time_compressing_a_schedule_that_does_not(
     assert "at most 100000 iterations, fitted to 14 s" in capsys.readouterr().out
     assert metrics["timings"]["process_s"] >= 0
 
-
-def test_the_default_demo_keeps_a_schedule_that_fits(small, tiny_demo, tmp_path, monkeypatch):
-    """A schedule that fits the demo's time is trained as the config has it, not stretched."""
-    monkeypatch.setattr("neus_l0.train.run_config.process_seconds", lambda: 0.0)
-    out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--quiet", "--resolution", "40", "--threads", "1",
-                 *[o for o in small[:-3] if not o.startswith("model.sdf.encoding")],
-                 "train.iters=30", "train.val_every=0", "train.compile=false"]) == 0
-    plan = json.loads((out / "run" / "budget.json").read_text())
-    assert plan["planned_iters"] == plan["done_iters"] == 30
-    assert load_config(out / "run" / "config.yaml").train.iters == 30

@@ -282,6 +282,10 @@ def _tiny_demo(small, tmp_path, iters):
 def test_demo_quick(small, tiny_demo, tmp_path):
     m = _tiny_demo(small, tmp_path, 3)
     assert m["iterations"] == 3 and m["mesh"]["faces"] > 0
+    # the demo's training is a budget run capped at the config's iterations: a schedule that
+    # fits is trained as it is, not stretched to the time
+    plan = json.loads((tmp_path / "demo" / "run" / "budget.json").read_text())
+    assert plan["planned_iters"] == plan["done_iters"] == 3
 
 
 def test_demo_rerun_with_another_sampler_is_refused_not_mislabelled(small, tiny_demo,
