@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--resolution", type=int, default=256, help="its marching cubes (256)")
     ap.add_argument("overrides", nargs="*", help="config overrides, e.g. "
                     "model.sdf.encoding.finest_resolution=128")
-    a = ap.parse_args(argv)
+    a = ap.parse_intermixed_args(argv)  # overrides may follow the options
     torch.set_num_threads(1)
     try:
         ax, ay = (float(v) for v in a.axis.split(","))
