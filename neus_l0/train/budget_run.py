@@ -176,7 +176,8 @@ class BudgetKeeper(TrainingCallback):
         p = self.plan
         atomic_write_json(run.run_dir / "budget.json", {
             "budget_s": p.budget_s, "spent_before_steps_s": round(p.spent_s, 2),
-            "planned_iters": p.iters, "costs": dataclasses.asdict(p.costs),
+            "planned_iters": p.iters, "most_iters": p.most or None,
+            "costs": dataclasses.asdict(p.costs),
             "estimated_s": round(p.estimated_s, 2), "retargets": self.retargets,
             "done_iters": done, "steps_end_s": round(self.spent(), 2) if done else None},
             within=run.run_dir)

@@ -69,6 +69,7 @@ def test_the_default_demo_fits_its_time_compressing_a_schedule_that_does_not(
     recorded = load_config(out / "run" / "config.yaml")
     metrics = json.loads((out / "metrics.json").read_text())
     assert plan["budget_s"] == 14.0 and 20 <= plan["planned_iters"] < 100000
+    assert plan["most_iters"] == 100000
     assert recorded.train.iters == plan["planned_iters"] and not recorded.train.budget_up_to_iters
     assert metrics["iterations"] == plan["done_iters"] and plan["steps_end_s"] <= 14.0
     assert "at most 100000 iterations, fitted to 14 s" in capsys.readouterr().out

@@ -285,7 +285,7 @@ def test_demo_quick(small, tiny_demo, tmp_path):
     # the demo's training is a budget run capped at the config's iterations: a schedule that
     # fits is trained as it is, not stretched to the time
     plan = json.loads((tmp_path / "demo" / "run" / "budget.json").read_text())
-    assert plan["planned_iters"] == plan["done_iters"] == 3
+    assert plan["planned_iters"] == plan["done_iters"] == plan["most_iters"] == 3
 
 
 def test_demo_rerun_with_another_sampler_is_refused_not_mislabelled(small, tiny_demo,
