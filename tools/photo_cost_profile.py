@@ -30,6 +30,7 @@ import numpy as np
 import torch
 import trimesh
 from scipy.spatial import cKDTree
+from source_visibility import seen_by, true_normals  # a sibling tool (run as a script)
 
 from neus_l0.atomic import atomic_write_json
 from neus_l0.data.patches import ncc
@@ -63,91 +64,93 @@ def source_costs(ctx: PhotoContext, view: int, xy: torch.Tensor, points: torch.T
     return (1.0 - ncc(ref, vals)) * 0.5, valid
 
 
-def sees(points_w: np.ndarray, views: np.ndarray, depth: np.ndarray,
-         projections: np.ndarray, tol: float) -> np.ndarray:
-    """(B, M) whether view ``views[b, m]`` sees world point ``points_w[b]``: its depth map
-    at the point's pixel within `tol` of the point's own depth."""
-    from neus_l0.data.cameras import depth_projection, pixel_indices
-
-    H, W = depth.shape[1:]
-    out = np.zeros(views.shape, dtype=bool)
-    for j in np.unique(views):
-        rows_b, cols_m = np.nonzero(views == j)
-        col, row, z = pixel_indices(depth_projection(projections[j]), points_w[rows_b], H, W)
-        ok = col >= 0
-        there = np.full(len(rows_b), np.nan)
-        there[ok] = depth[j][row[ok], col[ok]]
-        out[rows_b, cols_m] = ok & (np.abs(there - z) < tol)
-    return out
+def view_costs(ctx: PhotoContext, view: int, xw: np.ndarray, normals: np.ndarray,
+               xy: np.ndarray, offsets: list[float], geometry: dict,
+               max_cost: float) -> tuple[np.ndarray, np.ndarray]:
+    """One view's pixels `xy` (B, 2) seeing world points `xw` (B, 3) with true `normals`:
+    the best-k cost at each offset (B, D; NaN where no source counts) and each source's
+    cost at d = 0 with whether it sees the point, (B, M) each stacked as (2, B, M).
+    `geometry`: the scene's ``scale``, ``centre``, ``depth`` and ``projections``."""
+    scale, centre = geometry["scale"], geometry["centre"]
+    cam = ctx.centres[view].double().numpy() * scale + centre
+    ray = (xw - cam) / np.linalg.norm(xw - cam, axis=-1, keepdims=True)
+    pix = torch.tensor(xy, dtype=torch.float32)
+    nt = torch.tensor(normals, dtype=torch.float32)
+    costs, at_zero = [], None
+    for d in offsets:
+        xn = torch.tensor((xw + d * ray - centre) / scale, dtype=torch.float32)
+        c, ok = source_costs(ctx, view, pix, xn, nt)
+        per_ray, any_ok = best_cost(c, ok & (c <= max_cost), ctx.best)
+        costs.append(torch.where(any_ok, per_ray, torch.nan).numpy())
+        if d == 0:
+            seen = np.stack([seen_by(xw, np.array([int(j)]), geometry["depth"],
+                                     geometry["projections"], geometry["tol"]) > 0
+                             for j in ctx.sources[view]], -1)
+            at_zero = np.stack([c.numpy(), seen])
+    return np.stack(costs, -1), at_zero
 
 
 def profile(root: Path, names: list[str] | None, offsets: list[float], sources: int,
-            best: int, max_cost: float, pixels: int, tol: float, seed: int = 0) -> list[dict]:
+            best: int, max_cost: float, pixels: int, tol: float) -> list[dict]:
     """Per feature: the mean best-`best` cost and the share of pixels lowest at each offset,
-    and the cost quantiles of seeing and of occluded sources at d = 0."""
+    and the cost quantiles of seeing and of occluded sources at d = 0 (pixels drawn with
+    seed 0)."""
     pts, depth, projections = first_hits(root)
-    feats = json.loads((root / "features.json").read_text())["features"]
+    path = root / "features.json"
+    if not path.is_file():
+        raise SystemExit(f"{path}: missing (a synthetic scene from neus-l0 synth has one)")
+    feats = json.loads(path.read_text())["features"]
     if names is not None:
         missing = sorted(set(names) - {f["name"] for f in feats})
         if missing:
-            raise SystemExit(f"{root / 'features.json'}: no feature named {missing}")
+            raise SystemExit(f"{path}: no feature named {missing}")
         feats = [f for f in feats if f["name"] in names]
     scene = load_scene(root)
     ctx = PhotoContext.from_scene(scene, sources, 3, 1, best)
-    scale = float(scene.scale_mat[0, 0])
-    centre = np.asarray(scene.scale_mat[:3, 3])
+    geometry = {"scale": float(scene.scale_mat[0, 0]),
+                "centre": np.asarray(scene.scale_mat[:3, 3]),
+                "depth": depth, "projections": projections, "tol": tol}
     mesh = trimesh.load(root / "gt_mesh.ply", process=False)
     tree = cKDTree(np.asarray(mesh.triangles_center))
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(0)
     rows = []
     for f in feats:
         inside = np.linalg.norm(pts - np.asarray(f["center"]), axis=-1) <= f["radius"]
         per_offset, seen_c, hidden_c = [], [], []
         for v in range(len(projections)):
             ys, xs = np.nonzero(inside[v])
-            if len(xs) == 0:
-                continue
             if len(xs) > pixels:
                 keep = rng.choice(len(xs), pixels, replace=False)
                 ys, xs = ys[keep], xs[keep]
-            xw = pts[v][ys, xs]  # (B, 3) world
-            cam = scene.c2w[v, :3, 3].double().numpy() * scale + centre
-            _, face = tree.query(xw)
-            n = np.asarray(mesh.face_normals)[face]
-            n = np.where((((cam - xw) * n).sum(-1) < 0)[:, None], -n, n)
-            ray = (xw - cam) / np.linalg.norm(xw - cam, axis=-1, keepdims=True)
-            xy = torch.tensor(np.stack([xs, ys], -1), dtype=torch.float32)
-            nt = torch.tensor(n, dtype=torch.float32)
-            costs = []
-            for d in offsets:
-                xn = torch.tensor((xw + d * ray - centre) / scale, dtype=torch.float32)
-                c, ok = source_costs(ctx, v, xy, xn, nt)
-                ok = ok & (c <= max_cost)
-                per_ray, any_ok = best_cost(c, ok, ctx.best)
-                costs.append(torch.where(any_ok, per_ray, torch.nan).numpy())
-                if d == 0:
-                    vis = sees(xw, ctx.sources[v].numpy()[None].repeat(len(xw), 0), depth,
-                               projections, tol)
-                    cv = c.numpy()
-                    seen_c.append(cv[vis])
-                    hidden_c.append(cv[~vis])
-            per_offset.append(np.stack(costs, -1))  # (B, D)
-        if not per_offset:
-            continue
-        c = np.concatenate(per_offset)
-        counted = np.isfinite(c).all(-1)
-        best_at = np.argmin(np.where(np.isfinite(c), c, np.inf), -1)[counted]
-        seen_c, hidden_c = np.concatenate(seen_c), np.concatenate(hidden_c)
-        rows.append({
-            "feature": f["name"], "pixels": int(len(c)), "counted": int(counted.sum()),
-            "mean_cost": [float(np.nanmean(c[:, i])) for i in range(len(offsets))],
-            "lowest_at": [float((best_at == i).mean()) if len(best_at) else 0.0
-                          for i in range(len(offsets))],
-            "seen_sources": int(seen_c.size), "hidden_sources": int(hidden_c.size),
-            "seen_quantiles": np.quantile(seen_c, [0.1, 0.5, 0.9]).tolist() if seen_c.size
-            else [], "hidden_quantiles": np.quantile(hidden_c, [0.1, 0.5, 0.9]).tolist()
-            if hidden_c.size else []})
+            if len(xs) == 0:
+                continue
+            xw = pts[v][ys, xs]
+            cam = ctx.centres[v].double().numpy() * geometry["scale"] + geometry["centre"]
+            n = true_normals(mesh, tree, xw, np.broadcast_to(cam, xw.shape))
+            c, (c0, seen) = view_costs(ctx, v, xw, n, np.stack([xs, ys], -1), offsets,
+                                       geometry, max_cost)
+            per_offset.append(c)
+            seen_c.append(c0[seen > 0])
+            hidden_c.append(c0[seen == 0])
+        if per_offset:
+            rows.append(_row(f["name"], np.concatenate(per_offset), np.concatenate(seen_c),
+                             np.concatenate(hidden_c), len(offsets)))
     return rows
+
+
+def _row(name: str, c: np.ndarray, seen_c: np.ndarray, hidden_c: np.ndarray,
+         n_offsets: int) -> dict:
+    """A feature's table row from its pixels' costs (P, D) and its sources' costs at d = 0."""
+    counted = np.isfinite(c).all(-1)
+    best_at = np.argmin(np.where(np.isfinite(c), c, np.inf), -1)[counted]
+    q = [0.1, 0.5, 0.9]
+    return {"feature": name, "pixels": int(len(c)), "counted": int(counted.sum()),
+            "mean_cost": [float(np.nanmean(c[:, i])) for i in range(n_offsets)],
+            "lowest_at": [float((best_at == i).mean()) if len(best_at) else 0.0
+                          for i in range(n_offsets)],
+            "seen_sources": int(seen_c.size), "hidden_sources": int(hidden_c.size),
+            "seen_quantiles": np.quantile(seen_c, q).tolist() if seen_c.size else [],
+            "hidden_quantiles": np.quantile(hidden_c, q).tolist() if hidden_c.size else []}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -129,12 +129,7 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     timings["scene_s"] = time.monotonic() - t0
 
     t0 = time.monotonic()
-    fit = _fits_the_demo(opts)
-    if opts.budget > 0:
-        cfg.train.budget, cfg.train.max_seconds = opts.budget, 0.0
-    elif fit:  # a placeholder until training starts: a resume reads its recorded plan
-        cfg.train.budget, cfg.train.max_seconds = DEMO_BUDGET_S, 0.0
-        cfg.train.budget_up_to_iters = True
+    fit = _training_time(opts, cfg)
     trained = _train_demo(opts, cfg, paths["scene"], paths["run"], device, threads, fit)
     timings["train_s"] = time.monotonic() - t0
     if trained.signal:
@@ -164,11 +159,19 @@ def run_demo(opts: DemoOptions) -> DemoResult:
     return dataclasses.replace(result, metrics=metrics, iteration=trained.iteration)
 
 
-def _fits_the_demo(opts: DemoOptions) -> bool:
-    """Whether training is fitted to `DEMO_BUDGET_S` (no `--budget` and no time or budget
-    given among the overrides)."""
-    keys = ("train.max_seconds=", "train.budget=")
-    return opts.budget <= 0 and not any(o.startswith(keys) for o in opts.overrides)
+def _training_time(opts: DemoOptions, cfg) -> bool:
+    """Set `cfg`'s training time: `--budget`'s, or (no time or budget among the overrides)
+    a budget capped at the config's iterations whose seconds `_train_demo` fits to
+    `DEMO_BUDGET_S` when a fresh run starts (a resume reads its recorded plan). Returns
+    whether it is fitted."""
+    if opts.budget > 0:
+        cfg.train.budget, cfg.train.max_seconds = opts.budget, 0.0
+        return False
+    if any(o.startswith(("train.max_seconds=", "train.budget=")) for o in opts.overrides):
+        return False
+    cfg.train.budget, cfg.train.max_seconds = DEMO_BUDGET_S, 0.0  # a placeholder
+    cfg.train.budget_up_to_iters = True
+    return True
 
 
 def _ladder(opts: DemoOptions) -> list[str]:

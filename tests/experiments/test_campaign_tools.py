@@ -324,7 +324,8 @@ def test_source_visibility_sees_each_pixel_from_its_own_view_and_counts_shares(t
         assert m["share_seen_by"][0] <= r["share_seen_by"][0] + 1e-12
 
 
-def test_photo_cost_profile_scores_a_view_against_itself_as_perfect_at_any_offset(tiny_scene):
+def test_photo_cost_profile_scores_a_view_against_itself_as_perfect_at_any_offset(tiny_scene,
+                                                                                 monkeypatch):
     """A view as its own source: every plane through a point on a pixel's ray carries the
     patch back onto itself, so the cost is 0 at every offset; with the real sources, each
     feature's shares of the lowest offset sum to 1 and a view sees its own hits."""
@@ -338,6 +339,8 @@ def test_photo_cost_profile_scores_a_view_against_itself_as_perfect_at_any_offse
     from neus_l0.formats.neus import load_scene
     from neus_l0.train.photometric import PhotoContext, sample_gray
 
+    # the tool imports its sibling as a script does (its own folder first on the path)
+    monkeypatch.setitem(sys.modules, "source_visibility", _tool("source_visibility"))
     tool = _tool("photo_cost_profile")
     scene = load_scene(tiny_scene)
     ctx = PhotoContext.from_scene(scene, 3, 3, 1, 2)
@@ -360,8 +363,6 @@ def test_photo_cost_profile_scores_a_view_against_itself_as_perfect_at_any_offse
                                                                              keepdim=True))
         assert valid.float().mean() > 0.9
         assert torch.allclose(cost[valid[:, 0]], itself[valid[:, 0]], atol=1e-4)
-    seen = tool.sees(pts[0][ys, xs], np.zeros((len(xs), 1), dtype=int), depth, projections, 0.5)
-    assert seen.all()
     rows = tool.profile(tiny_scene, None, [-2.0, 0.0, 2.0], 3, 2, 1.0, 50, 1.5)
     assert rows
     for r in rows:
@@ -369,8 +370,16 @@ def test_photo_cost_profile_scores_a_view_against_itself_as_perfect_at_any_offse
         assert r["counted"] == 0 or abs(sum(r["lowest_at"]) - 1) < 1e-9
         for q in (r["seen_quantiles"], r["hidden_quantiles"]):
             assert q == sorted(q)
+        assert r["seen_sources"] + r["hidden_sources"] == 3 * r["pixels"]  # 3 sources each
     with pytest.raises(SystemExit, match="no feature named"):
         tool.profile(tiny_scene, ["no such"], [0.0], 3, 2, 1.0, 50, 1.5)
+    done = subprocess.run([sys.executable, str(TOOLS / "photo_cost_profile.py"), str(tiny_scene),
+                           "--offsets=-1,0,1", "--pixels", "20"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "| d=-1 | d=0 | d=1 |" in done.stdout
+    bad = subprocess.run([sys.executable, str(TOOLS / "photo_cost_profile.py"), str(tiny_scene),
+                          "--offsets=1,2"], capture_output=True, text=True)
+    assert bad.returncode != 0 and "must include 0" in bad.stderr
 
 
 def test_floor_height_keeps_the_vertices_over_the_floor_and_measures_their_rise():
