@@ -29,7 +29,7 @@ PAD_MODES: tuple[str, ...] = get_args(PadMode)
 Placement = Literal["midpoint", "endpoint"]
 PLACEMENTS: tuple[str, ...] = get_args(Placement)
 #: What a ray writes into the pool's error map (see `ErrorMapConfig.signal`).
-ErrorSignal = Literal["colour", "depth"]
+ErrorSignal = Literal["colour", "depth", "depth_mask"]
 #: Where the L0 samplers' section shares come from (see `L0Sampler`).
 Masses = Literal["interpolant", "sections"]
 MASSES: tuple[str, ...] = get_args(Masses)
@@ -370,7 +370,10 @@ class ErrorMapConfig:
     |opacity - mask| with masks) or ``depth`` (how far its rendered surface lies behind the
     ray's entry into the visual hull, in the unit sphere's units: a pit's floor, a rod
     inside a cavity; a ray off the mask takes its batch's mean over the rays on it, so that
-    the map leaves the rays that carve the hull's slack their uniform share)."""
+    the map leaves the rays that carve the hull's slack their uniform share) or
+    ``depth_mask`` (``depth`` plus each ray's mask error |opacity - mask|: the rays that
+    still see surface outside the silhouette, or miss inside it, are drawn more, where
+    ``depth`` alone starved them and left slack under an object)."""
 
 
 @dataclass

@@ -79,18 +79,24 @@ def ray_errors(out: RenderOutput, target_rgb: Tensor, mask: Tensor, use_mask: bo
             opacity without masks), how deep behind its entry into the hull the ray's
             surface lies; rays off the mask take the batch's mean over the rays on it, so
             that the map moves rays within the object and leaves the rays that carve the
-            hull's slack (off the mask) their uniform share.
+            hull's slack (off the mask) their uniform share; ``depth_mask``: ``depth``
+            plus |opacity - mask| on every ray (with masks; without, as ``depth``), so that
+            the rays whose render disagrees with the silhouette are drawn more, in the
+            same units as the depth in a unit-sphere scene (a ray fully wrong adds 1).
         near: (B,) where each ray enters the static bounds (the hull); None: its first
             sample, ``out.t[:, 0]``.
     """
-    if signal == "depth":
+    if signal in ("depth", "depth_mask"):
         start = out.t[:, 0] if near is None else near
         err = (out.depth[:, 0] - start).clamp_min(0.0)
         if not use_mask:
             return (err * out.weight_sum[:, 0]).detach()
         on = mask[:, 0]
         mean_on = (err * on).sum() / on.sum().clamp_min(1.0)
-        return torch.where(on > 0.5, err, mean_on).detach()
+        err = torch.where(on > 0.5, err, mean_on)
+        if signal == "depth_mask":
+            err = err + (out.weight_sum[:, 0] - on).abs()
+        return err.detach()
     err = (out.color - target_rgb).abs().sum(-1) * mask[:, 0]
     if use_mask:
         err = err + (out.weight_sum[:, 0] - mask[:, 0]).abs()

@@ -136,7 +136,8 @@ def test_a_run_with_the_error_map_trains(small, sphere_scene, tmp_path):
     assert rows[-1]["loss"] < rows[0]["loss"]
 
 
-def test_the_step_with_the_error_map_has_no_graph_break(sphere_scene, tmp_path):
+@pytest.mark.parametrize("signal", ["colour", "depth_mask"])
+def test_the_step_with_the_error_map_has_no_graph_break(signal, sphere_scene, tmp_path):
     """The drawn weights enter the compiled step as a tensor; the per-ray errors leave it."""
     from neus_l0.bounds.pixel_pool import reachable_pixels
     from neus_l0.bounds.static import static_bounds
@@ -145,7 +146,8 @@ def test_the_step_with_the_error_map_has_no_graph_break(sphere_scene, tmp_path):
     from neus_l0.train.step import draw_step_inputs, render_and_loss
 
     scene = sphere_scene(tmp_path / "s")
-    cfg = load_config("demo", ["model.sdf.gradient=analytic", "train.error_map.fraction=0.5"])
+    cfg = load_config("demo", ["model.sdf.gradient=analytic", "train.error_map.fraction=0.5",
+                               f"train.error_map.signal={signal}"])
     pool = with_error_map(reachable_pixels(scene, cfg.render, static_bounds(
         scene, cfg, tmp_path / "run" / "hull.pt")), scene, cfg)
     inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), pool)
