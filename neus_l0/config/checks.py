@@ -142,6 +142,7 @@ RULES: dict[tuple[type, str], Range] = {
     (TrainConfig, "curvature_fraction"): Range(0, 1, lo_open=True),
     (ColorConfig, "view_warmup"): Range(0, 1),
     (ErrorMapConfig, "fraction"): Range(0, 1, hi_open=True),
+    (ErrorMapConfig, "warmup"): Range(0, 1),
     (ErrorMapConfig, "decay"): Range(0, 1, lo_open=True),
     (ErrorMapConfig, "tile"): at_least(1),
     (PhotoConfig, "weight"): at_least(0, "0: off"),

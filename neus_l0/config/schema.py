@@ -360,6 +360,10 @@ class ErrorMapConfig:
 
     fraction: float = 0.0
     """Share of the draw that follows the error map, in [0, 1) (0: off, uniform draws)."""
+    warmup: float = 0.0
+    """Share of the schedule over which the map's share rises linearly from 0 to
+    `fraction`, in [0, 1] (0: `fraction` from the start): the early rays stay uniform, to
+    carve the hull's slack before the map draws them to the deep pixels."""
     decay: float = 0.3
     """Weight of a ray's new error in its tile's running error, in (0, 1]."""
     tile: int = 8

@@ -402,6 +402,15 @@ def view_scale(cfg: Config, at: float) -> float:
     return 1.0 if span <= 0 else min(1.0, max(0.0, at / span))
 
 
+def map_fraction(cfg: Config, at: float) -> float:
+    """The error map's share of the draw at schedule iteration `at`: ``f * at / (w * L)`` up
+    to ``f``, f the config's ``train.error_map.fraction``, w its ``warmup`` (f throughout when
+    it is 0), L the `schedule_length`."""
+    c = cfg.train.error_map
+    span = c.warmup * schedule_length(cfg)
+    return c.fraction if span <= 0 else c.fraction * min(1.0, max(0.0, at / span))
+
+
 def set_view_scale(model: NeuSModel, cfg: Config, at: float) -> None:
     """Set the colour network's view-encoding weight (`view_scale`) for iteration `at`."""
     if cfg.model.color.view_warmup > 0:
@@ -412,7 +421,8 @@ def _schedule_position(model: NeuSModel, optimizer: torch.optim.Optimizer, cfg: 
                        iteration: int, setup: StepSetup) -> float:
     """Where the step stands on the schedule (the real iteration, unless a budget compressed
     the rest: `StepSetup.warp`), with the learning rate and the hash grids' levels set there;
-    at log steps the pool's error map refreshes its draw table. Host-side only."""
+    at log steps the pool's error map refreshes its draw table, at its share for `at`
+    (`map_fraction`). Host-side only."""
     at = iteration
     if setup.warp is not None and setup.warp.warped:
         at = setup.warp.at(iteration)
@@ -422,7 +432,8 @@ def _schedule_position(model: NeuSModel, optimizer: torch.optim.Optimizer, cfg: 
     emap = setup.pool.error_map if setup.pool is not None else None
     if emap is not None and iteration % refresh_interval(emap.prob.numel(),
                                                          cfg.train.log_every) == 0:
-        refresh_table(emap)  # the draw table follows the map
+        emap.fraction = map_fraction(cfg, at)
+        refresh_table(emap)  # the draw table follows the map (and its share's warm-up)
     return at
 
 def train_step(model: NeuSModel, optimizer: torch.optim.Optimizer, scene: Scene, cfg: Config,

@@ -115,6 +115,52 @@ def test_config_range_and_off_by_default():
         load_config("demo", ["train.error_map.fraction=1"])
 
 
+def test_the_maps_share_warms_up_linearly_over_its_part_of_the_schedule():
+    from neus_l0.train.step import map_fraction
+
+    cfg = load_config("demo", ["train.iters=1000", "train.error_map.fraction=0.8",
+                               "train.error_map.warmup=0.25"])
+    got = [map_fraction(cfg, at) for at in (0, 125, 250, 600, 1000)]
+    assert got == pytest.approx([0.0, 0.4, 0.8, 0.8, 0.8])
+    off = load_config("demo", ["train.iters=1000", "train.error_map.fraction=0.8"])
+    assert map_fraction(off, 0) == 0.8
+    with pytest.raises(ConfigError, match="error_map.warmup"):
+        load_config("demo", ["train.error_map.warmup=1.5"])
+
+
+def test_the_step_rebuilds_the_table_at_the_warming_share():
+    from neus_l0.bounds.pixel_pool import PixelPool
+    from neus_l0.train.step import StepSetup, _schedule_position
+
+    cfg = load_config("demo", ["train.iters=1000", "train.error_map.fraction=0.8",
+                               "train.error_map.warmup=0.5", "train.log_every=50"])
+    emap = new_error_map(torch.arange(10), 0.8, 0.3)
+    emap.error = torch.arange(10.0)
+    setup = StepSetup(pool=PixelPool(pixels=torch.arange(10), fraction=1.0, error_map=emap))
+    opt = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
+    for it, want in ((0, 0.0), (250, 0.4), (260, 0.4), (300, 0.48), (900, 0.8)):
+        _schedule_position(None, opt, cfg, it, setup)
+        assert emap.fraction == pytest.approx(want)  # only log steps rebuild the table
+        assert emap.prob.tolist() == pytest.approx(
+            draw_probabilities(emap.error, want).float().tolist())
+
+
+def test_warming_up_the_share_keeps_the_weights_unbiased():
+    """A table rebuilt at a lower share draws more uniformly, and its importance weights
+    still give every pixel ``P p w = 1``."""
+    g = torch.Generator().manual_seed(3)
+    err = torch.rand(400, generator=g) ** 4
+    for f in (0.0, 0.3, 0.8):
+        emap = new_error_map(torch.arange(400), f, 0.3)
+        emap.error = err.clone()
+        refresh_table(emap)
+        idx = torch.arange(400)
+        assert (400 * emap.prob * importance_weights(emap.prob, idx)).tolist() == \
+            pytest.approx([1.0] * 400)
+        assert float(emap.prob.min()) == pytest.approx((1 - f) / 400 + f * float(
+            err.min() / err.sum()), rel=1e-5)
+
+
 def test_the_pool_gets_a_map_only_when_asked(sphere_scene, tmp_path):
     scene = sphere_scene(tmp_path / "s")
     assert with_error_map(None, scene, load_config("demo")) is None
