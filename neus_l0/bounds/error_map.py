@@ -44,6 +44,8 @@ class ErrorMap:
         decay: weight of a new error in the running error, in (0, 1].
         foreground: the share of pool pixels in the foreground (1 when masks are unused):
             the expected share of a batch that the colour term averages over.
+        table_error: (K,) float32 the tiles' errors the current table was built from (a
+            checkpoint keeps them, so that a resumed run draws from the same table).
     """
 
     error: Tensor
@@ -53,6 +55,7 @@ class ErrorMap:
     fraction: float
     decay: float
     foreground: float = 1.0
+    table_error: Tensor | None = None
 
 
 def draw_probabilities(error: Tensor, fraction: float) -> Tensor:
@@ -82,9 +85,41 @@ def refresh_interval(n_pixels: int, log_every: int) -> int:
 
 def refresh_table(emap: ErrorMap) -> None:
     """Rebuild `emap`'s draw table (prob, cdf) from its running error, in place."""
-    p = draw_probabilities(emap.error[emap.tile], emap.fraction)
+    emap.table_error = emap.error.clone()
+    _build_table(emap)
+
+
+def _build_table(emap: ErrorMap) -> None:
+    """(prob, cdf) from `emap.table_error` at `emap.fraction`."""
+    p = draw_probabilities(emap.table_error[emap.tile], emap.fraction)
     emap.prob = p.float()
     emap.cdf = torch.cumsum(p, 0)
+
+
+def map_state(emap: ErrorMap) -> dict:
+    """What a checkpoint keeps of `emap`: the running errors, the errors its table was
+    built from and its share (the tiles and the table follow from them and the pool)."""
+    return {"error": emap.error.detach().cpu().clone(),
+            "table_error": emap.table_error.detach().cpu().clone(),
+            "fraction": float(emap.fraction)}
+
+
+def restore_map(emap: ErrorMap, state: dict) -> bool:
+    """Load `map_state`'s `state` into `emap` and rebuild its table as it was, in place.
+
+    Returns:
+        False (nothing loaded) when the state's tiles are not this map's (another pool,
+        another tile size): the map then starts uniform.
+    """
+    error, table = state.get("error"), state.get("table_error")
+    if not (isinstance(error, Tensor) and isinstance(table, Tensor)
+            and error.shape == table.shape == emap.error.shape):
+        return False
+    emap.error = error.to(emap.error).clone()
+    emap.table_error = table.to(emap.error).clone()
+    emap.fraction = float(state.get("fraction", emap.fraction))
+    _build_table(emap)
+    return True
 
 
 def new_error_map(tile: Tensor, fraction: float, decay: float,

@@ -122,7 +122,7 @@ def schema_problem(state: Any) -> str | None:
     for key, ok, why in checks:
         if not ok:
             return f"'{key}' {why} ({_shown(state.get(key))})"
-    for key in ("occupancy", "scaler"):
+    for key in ("occupancy", "scaler", "error_map"):
         if key in state and not isinstance(state[key], dict):
             return f"'{key}' is not a dict"
     for key, problem in (("rng", _rng_problem(state["rng"])),

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from neus_l0.atomic import atomic_write_json, atomic_write_text, remove_orphans
+from neus_l0.bounds.error_map import restore_map
 from neus_l0.bounds.pixel_pool import reachable_pixels, with_error_map
 from neus_l0.bounds.silhouettes import Silhouettes
 from neus_l0.bounds.static import cameras_inside_warning, static_bounds
@@ -183,9 +184,21 @@ def build_run_state(scene: Scene, cfg: Config, run_dir: Path, device: torch.devi
         run.iteration, rays = restore_training(ckpt, state, run.model, run.optimizer,
                                                 run.generator, run.scaler, run.occupancy)
         run.rays = resumed_batch_size(rays, cfg)
+        _restore_error_map(run, state)
         run.last_checkpoint = ckpt
         run.setup.warp = _resumed_warp(state, cfg)
     return run
+
+
+def _restore_error_map(run: RunState, state: dict) -> None:
+    """The pool's error map as the checkpoint left it (a checkpoint without one, or one of
+    another pool, leaves the map uniform, with a line saying so)."""
+    emap = run.setup.pool.error_map if run.setup.pool is not None else None
+    if emap is None:
+        return
+    if not restore_map(emap, state.get("error_map") or {}):
+        print("neus-l0: the checkpoint holds no error map for this pool: the map restarts "
+              "uniform", file=sys.stderr, flush=True)
 
 
 def _found_checkpoint(scene: Scene, cfg: Config, run_dir: Path, device: torch.device,

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from neus_l0.bounds.error_map import map_state
 from neus_l0.bounds.occupancy import OccupancyGrid
 from neus_l0.bounds.spans import join_bounds
 from neus_l0.config.load import to_dict
@@ -130,6 +131,8 @@ class RunState:
             state["view_scale"] = float(self.model.color.view_scale)
         if self.occupancy is not None:
             state["occupancy"] = self.occupancy.state_dict()
+        if self.setup.pool is not None and self.setup.pool.error_map is not None:
+            state["error_map"] = map_state(self.setup.pool.error_map)
         if self.scaler.is_enabled():
             state["scaler"] = self.scaler.state_dict()
         return state

@@ -182,6 +182,46 @@ def test_a_run_with_the_error_map_trains(small, sphere_scene, tmp_path):
     assert rows[-1]["loss"] < rows[0]["loss"]
 
 
+def test_a_map_state_of_other_tiles_is_not_loaded():
+    from neus_l0.bounds.error_map import map_state, restore_map
+    from neus_l0.run.checkpoint_schema import schema_problem
+
+    emap = new_error_map(torch.arange(6), 0.8, 0.5)
+    emap.error = torch.tensor([0.0, 1.0, 2.0, 0.0, 0.0, 3.0])
+    refresh_table(emap)
+    state = map_state(emap)
+    other = new_error_map(torch.arange(4), 0.8, 0.5)
+    assert not restore_map(other, state) and other.error.sum() == 0
+    again = new_error_map(torch.arange(6), 0.0, 0.5)
+    assert restore_map(again, state) and torch.equal(again.prob, emap.prob)
+    assert schema_problem({"iteration": 0, "model": {}, "optimizer": {
+        "state": {}, "param_groups": []}, "rng": None, "config": {}, "scale_mat": None,
+        "error_map": [1, 2]}) == "'error_map' is not a dict"
+
+
+def test_resume_with_the_map_equals_uninterrupted(small, sphere_scene, tmp_path):
+    """The map's errors and the table in use travel in the checkpoint: a run stopped
+    between two table rebuilds and resumed draws the same rays as one that never stopped."""
+    from neus_l0.run.checkpoints import latest_checkpoint, load_checkpoint
+
+    scene = sphere_scene(tmp_path / "scene")
+    cfg = load_config("demo", small + ["train.iters=12", "train.log_every=4",
+                                       "train.error_map.fraction=0.8",
+                                       "train.error_map.signal=depth_mask",
+                                       "train.error_map.warmup=0.5", "train.error_map.tile=4"])
+    train(scene, cfg, tmp_path / "a", progress=False)
+    train(scene, cfg, tmp_path / "b", progress=False, stop_at=6)
+    train(scene, cfg, tmp_path / "b", resume=True, progress=False)
+    a = load_checkpoint(latest_checkpoint(tmp_path / "a"))
+    b = load_checkpoint(latest_checkpoint(tmp_path / "b"))
+    assert a["error_map"]["error"].abs().sum() > 0
+    for key in ("error", "table_error"):
+        assert torch.equal(a["error_map"][key], b["error_map"][key]), key
+    assert a["error_map"]["fraction"] == b["error_map"]["fraction"]
+    for k in a["model"]:
+        assert torch.equal(a["model"][k], b["model"][k]), k
+
+
 @pytest.mark.parametrize("signal", ["colour", "depth_mask"])
 def test_the_step_with_the_error_map_has_no_graph_break(signal, sphere_scene, tmp_path):
     """The drawn weights enter the compiled step as a tensor; the per-ray errors leave it."""
