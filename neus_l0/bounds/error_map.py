@@ -117,7 +117,9 @@ def restore_map(emap: ErrorMap, state: dict) -> bool:
         return False
     emap.error = error.to(emap.error).clone()
     emap.table_error = table.to(emap.error).clone()
-    emap.fraction = float(state.get("fraction", emap.fraction))
+    share = state.get("fraction", emap.fraction)
+    if isinstance(share, (int, float)) and 0.0 <= share < 1.0:  # else the config's stays
+        emap.fraction = float(share)
     _build_table(emap)
     return True
 

@@ -398,7 +398,13 @@ def set_level_steps(model: NeuSModel, steps: int) -> None:
 def view_scale(cfg: Config, at: float) -> float:
     """The view encoding's weight at schedule iteration `at`: ``at / (f * L)`` up to 1, f the
     config's ``model.color.view_warmup`` (1 when it is 0), L the `schedule_length`."""
-    span = cfg.model.color.view_warmup * schedule_length(cfg)
+    return warmup_ramp(cfg.model.color.view_warmup, cfg, at)
+
+
+def warmup_ramp(share: float, cfg: Config, at: float) -> float:
+    """``at / (share * L)`` clipped to [0, 1] (1 when `share` is 0), L the
+    `schedule_length`: a weight that rises linearly over the schedule's first `share`."""
+    span = share * schedule_length(cfg)
     return 1.0 if span <= 0 else min(1.0, max(0.0, at / span))
 
 
@@ -407,8 +413,7 @@ def map_fraction(cfg: Config, at: float) -> float:
     to ``f``, f the config's ``train.error_map.fraction``, w its ``warmup`` (f throughout when
     it is 0), L the `schedule_length`."""
     c = cfg.train.error_map
-    span = c.warmup * schedule_length(cfg)
-    return c.fraction if span <= 0 else c.fraction * min(1.0, max(0.0, at / span))
+    return c.fraction * warmup_ramp(c.warmup, cfg, at)
 
 
 def set_view_scale(model: NeuSModel, cfg: Config, at: float) -> None:

@@ -194,6 +194,8 @@ def test_a_map_state_of_other_tiles_is_not_loaded():
     assert not restore_map(other, state) and other.error.sum() == 0
     again = new_error_map(torch.arange(6), 0.0, 0.5)
     assert restore_map(again, state) and torch.equal(again.prob, emap.prob)
+    odd = new_error_map(torch.arange(6), 0.3, 0.5)  # a share out of range keeps the config's
+    assert restore_map(odd, dict(state, fraction=7.0)) and odd.fraction == 0.3
     assert schema_problem({"iteration": 0, "model": {}, "optimizer": {
         "state": {}, "param_groups": []}, "rng": None, "config": {}, "scale_mat": None,
         "error_map": [1, 2]}) == "'error_map' is not a dict"

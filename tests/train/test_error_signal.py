@@ -20,11 +20,16 @@ def _out(depth, weight_sum, t0):
                                  color=torch.zeros(len(depth), 3))
 
 
-def test_depth_signal_closed_form():
-    out = _out([0.9, 0.3, 0.7, 0.5], [1.0, 1.0, 0.5, 0.0], [0.1, 0.2, 0.3, 0.4])
+def _four_rays(weight_sum):
+    """Four rays: on, on, off and on the mask, surfaces at 0.9 / 0.3 / 0.7 / 0.5, entering
+    the hull at 0.5 / 0.4 / 0.2 / 0.1; (out, mask, near, rgb)."""
+    out = _out([0.9, 0.3, 0.7, 0.5], weight_sum, [0.1, 0.2, 0.3, 0.4])
     mask = torch.tensor([[1.0], [1.0], [0.0], [1.0]])
-    near = torch.tensor([0.5, 0.4, 0.2, 0.1])
-    rgb = torch.zeros(4, 3)
+    return out, mask, torch.tensor([0.5, 0.4, 0.2, 0.1]), torch.zeros(4, 3)
+
+
+def test_depth_signal_closed_form():
+    out, mask, near, rgb = _four_rays([1.0, 1.0, 0.5, 0.0])
     got = ray_errors(out, rgb, mask, True, "depth", near)
     # behind the entry; in front of it (0); off the mask: the mean of the rays on it
     assert got.tolist() == pytest.approx([0.4, 0.0, 0.8 / 3, 0.4])
@@ -37,10 +42,7 @@ def test_depth_signal_closed_form():
 
 
 def test_depth_mask_signal_adds_the_mask_error_closed_form():
-    out = _out([0.9, 0.3, 0.7, 0.5], [1.0, 0.75, 0.5, 0.0], [0.1, 0.2, 0.3, 0.4])
-    mask = torch.tensor([[1.0], [1.0], [0.0], [1.0]])
-    near = torch.tensor([0.5, 0.4, 0.2, 0.1])
-    rgb = torch.zeros(4, 3)
+    out, mask, near, rgb = _four_rays([1.0, 0.75, 0.5, 0.0])
     got = ray_errors(out, rgb, mask, True, "depth_mask", near)
     # ``depth`` as above, plus |opacity - mask|: 0, 0.25, 0.5 (slack off the mask), 1 (a miss)
     assert got.tolist() == pytest.approx([0.4, 0.25, 0.8 / 3 + 0.5, 0.4 + 1.0])
