@@ -3,12 +3,16 @@
 Usage:
     python tools/diagnose_pits.py SCENE [--conf demo] [--rays 96] [--budgets 16+16,32+32]
                                   [--out diag.json] [--train-seconds S --fraction F
-                                  --tile T --signal colour|depth]
+                                  --tile T --signal colour|depth|depth_mask --warmup W
+                                  --set KEY=VALUE ...] [--features [--feature-tol 6]]
 
 SCENE is a `pits-deep` folder (``neus-l0 synth pits-deep SCENE``). Every pixel's first true
 hit (``gt_depth.npz``) is labelled by the exact geometry of the deep pit
 (`neus_l0.synthetic.shapes.DEEP_PIT`): pit floor, pit wall, rods standing in the pit, open
-surface (everything else the object shows), or nothing. Per label it prints:
+surface (everything else the object shows), or nothing. With ``--features`` SCENE is any
+synthetic scene with a ``features.json`` and each feature is a label (`feature_label`: a
+thin feature's axis segment widened by ``--feature-tol``, any other feature's ball). Per
+label it prints:
 
 - the share of the training pixel pool (`neus_l0.bounds.pixel_pool.reachable_pixels` under
   the config's static bounds, as a run builds it) and, times ``train.batch_size``, the rays
@@ -21,9 +25,10 @@ surface (everything else the object shows), or nothing. Per label it prints:
   rays with none within 0.01, and the share of samples that sit on the surface (|SDF| <
   0.01) before the hit: rays grazing the rim or a rod on their way to the floor.
 
-With ``--train-seconds S`` it also trains the config for S seconds (one thread, eager) with
-``train.error_map.fraction`` `--fraction`, tiles of `--tile` pixels and the map's signal
-`--signal` (``train.error_map.signal``), and prints at each
+With ``--train-seconds S`` it also trains the config for S seconds (one thread, eager unless
+``--set train.compile=true``) with ``train.error_map.fraction`` `--fraction`, tiles of
+`--tile` pixels, the map's signal `--signal` (``train.error_map.signal``) and warm-up
+`--warmup`, and prints at each
 log step the rays a step draws per label under the map's table and the mean running error
 of the label's pixels: whether the map finds the pit.
 
@@ -57,13 +62,20 @@ from neus_l0.bounds.static import static_bounds
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import SamplerConfig
 from neus_l0.data.rays import rays_at
+from neus_l0.evaluation.features import load_features
 from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.experiments.oracle import first_hit
 from neus_l0.formats.neus import load_scene
 from neus_l0.render.volume import coarse_z_vals
 from neus_l0.sampling.upsample import build_sampler, up_sample
 from neus_l0.synthetic.scene import WORLD_OFFSET
-from neus_l0.synthetic.shapes import DEEP_PIT, DEEP_PIT_RODS, Translated, builtin_shape
+from neus_l0.synthetic.shapes import (
+    BUILTIN_SHAPES,
+    DEEP_PIT,
+    DEEP_PIT_RODS,
+    Translated,
+    builtin_shape,
+)
 from neus_l0.train.callbacks import TrainingCallback
 from neus_l0.train.loop import train
 
@@ -91,10 +103,37 @@ def label(pts: np.ndarray) -> np.ndarray:
     return out
 
 
-def view_table(labels: np.ndarray, pool_labels: np.ndarray, batch: int) -> list[dict]:
+def feature_label(pts: np.ndarray, features: list[dict], tol: float = 6.0
+                  ) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Label (..., 3) world points by a scene's features (``features.json``, any scene).
+
+    A thin feature with an axis is the segment ``center +- radius * axis``: a point within
+    `tol` world units of it is on the feature (a rod's radius plus a pixel or two). Any other
+    feature is its ball (the crop the scores use). Where features overlap, the smaller one
+    (by radius) wins.
+
+    Returns:
+        (...,) int labels (NaN points: 0, points on no feature: 1, feature i: i + 2) and the
+        names: ``("nothing", "open surface", *feature names)``.
+    """
+    out = np.where(np.isnan(pts[..., 2]), 0, 1)
+    for i in sorted(range(len(features)), key=lambda i: -features[i]["radius"]):
+        f = features[i]
+        d = pts - f["center"]
+        if f["kind"] == "thin" and f.get("axis") is not None:
+            along = np.clip(d @ f["axis"], -f["radius"], f["radius"])
+            on = np.linalg.norm(d - along[..., None] * f["axis"], axis=-1) <= tol
+        else:
+            on = np.linalg.norm(d, axis=-1) <= f["radius"]
+        out = np.where(on, i + 2, out)
+    return out, ("nothing", "open surface", *(f["name"] for f in features))
+
+
+def view_table(labels: np.ndarray, pool_labels: np.ndarray, batch: int,
+               names: tuple[str, ...] = LABELS) -> list[dict]:
     """Per label: pool share, rays a step, views seeing it, pixels per seeing view."""
     rows = []
-    for k, name in enumerate(LABELS):
+    for k, name in enumerate(names):
         per_view = (labels == k).reshape(labels.shape[0], -1).sum(-1)
         share = float((pool_labels == k).mean())
         seen = per_view[per_view > 0]
@@ -108,8 +147,8 @@ def view_table(labels: np.ndarray, pool_labels: np.ndarray, batch: int) -> list[
 class NormalisedSdf:
     """The scene's exact SDF in NeuS's normalised frame: ``f(S x + c) / s``."""
 
-    def __init__(self, scale_mat: np.ndarray):
-        shape = builtin_shape("pits-deep")
+    def __init__(self, scale_mat: np.ndarray, shape_name: str = "pits-deep"):
+        shape = builtin_shape(shape_name)
         self.sdf = Translated(shape.sdf, WORLD_OFFSET)
         self.s = float(scale_mat[0, 0])
         self.c = torch.as_tensor(scale_mat[:3, 3], dtype=torch.float64)
@@ -137,12 +176,15 @@ def fine_sample_row(sdf, rays: dict, span: torch.Tensor, hit: torch.Tensor,
 
 
 def sample_table(scene, pool, pool_labels: np.ndarray, n_rays: int,
-                 budgets: list[tuple[int, int, int]]) -> list[dict]:
-    """`fine_sample_row` per label (not `nothing`), budget and sampler."""
-    sdf = NormalisedSdf(np.asarray(scene.scale_mat))
+                 budgets: list[tuple[int, int, int]],
+                 names: tuple[str, ...] = LABELS, shape_name: str = "pits-deep"
+                 ) -> list[dict]:
+    """`fine_sample_row` per label (not `nothing`), budget and sampler, on the built-in
+    shape `shape_name`'s exact SDF."""
+    sdf = NormalisedSdf(np.asarray(scene.scale_mat), shape_name)
     rng = np.random.default_rng(0)
     rows = []
-    for k, name in enumerate(LABELS[1:], start=1):
+    for k, name in enumerate(names[1:], start=1):
         idx = np.nonzero(pool_labels == k)[0]
         idx = torch.as_tensor(rng.choice(idx, min(n_rays, len(idx)), replace=False))
         if len(idx) == 0:
@@ -168,8 +210,8 @@ class _RaysWhereTheMapDraws(TrainingCallback):
     """At each log step: the rays a step draws per label under the error map's table, and
     the mean running error of the label's pixels (their tiles')."""
 
-    def __init__(self, labels: np.ndarray, batch: int):
-        self.labels, self.batch, self.rows = labels, batch, []
+    def __init__(self, labels: np.ndarray, batch: int, names: tuple[str, ...] = LABELS):
+        self.labels, self.batch, self.names, self.rows = labels, batch, names, []
 
     def on_log(self, run, metrics: dict) -> None:
         pool = run.setup.pool
@@ -177,25 +219,23 @@ class _RaysWhereTheMapDraws(TrainingCallback):
         lab = self.labels[pool.pixels.cpu().numpy()]
         row = {"iteration": run.iteration, "loss": metrics.get("loss", float("nan"))}
         row.update({name: float(prob[lab == k].sum()) * self.batch
-                    for k, name in enumerate(LABELS)})
+                    for k, name in enumerate(self.names)})
         err = pool.error_map.error[pool.error_map.tile].cpu().numpy()
         row.update({f"err {name}": float(err[lab == k].mean()) if (lab == k).any() else 0.0
-                    for k, name in enumerate(LABELS)})
+                    for k, name in enumerate(self.names)})
         self.rows.append(row)
 
 
-def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float, fraction: float,
-                  tile: int = 8, signal: str = "colour") -> list[dict]:
-    """Train config `conf` with ``train.error_map.fraction`` for `seconds` (one thread, eager)
-    and return the rays a step draws per label at each log step (under the table the draw
-    uses then: `refresh_interval`)."""
-    cfg = load_config(conf, [f"train.error_map.fraction={fraction}",
-                             f"train.error_map.tile={tile}",
-                             f"train.error_map.signal={signal}",
-                                f"train.max_seconds={seconds}", "train.compile=false",
-                                "train.threads=1", "train.val_every=0", "train.save_every=0",
-                                "train.tensorboard=false", "train.log_every=100"])
-    cb = _RaysWhereTheMapDraws(labels.reshape(-1), cfg.train.batch_size)
+def error_map_run(scene, conf: str, labels: np.ndarray, seconds: float,
+                  overrides: list[str], names: tuple[str, ...] = LABELS) -> list[dict]:
+    """Train config `conf` with the error map's `overrides` (``train.error_map.*=...``, and
+    any other) for `seconds` (one thread; eager unless the overrides say otherwise) and
+    return the rays a step draws per label at each log step (under the table the draw uses
+    then: `refresh_interval`)."""
+    cfg = load_config(conf, [f"train.max_seconds={seconds}", "train.compile=false",
+                             "train.threads=1", "train.val_every=0", "train.save_every=0",
+                             "train.tensorboard=false", "train.log_every=100", *overrides])
+    cb = _RaysWhereTheMapDraws(labels.reshape(-1), cfg.train.batch_size, names)
     with tempfile.TemporaryDirectory() as tmp:
         train(scene, cfg, Path(tmp) / "run", progress=False, callbacks=[cb])
     return cb.rows
@@ -214,10 +254,10 @@ HASH_CHUNK = 1 << 18
 
 
 def _entry_traffic(enc, x: Tensor, lab: Tensor, xf: Tensor, hit_weight: float,
-                   free_weight: float) -> Tensor:
-    """(len(LABELS), table rows) float64: each label's traffic on every entry (label 0's row
+                   free_weight: float, n_labels: int) -> Tensor:
+    """(n_labels, table rows) float64: each label's traffic on every entry (label 0's row
     also takes the free samples `xf`)."""
-    traffic = torch.zeros(len(LABELS), enc.table.shape[0], dtype=torch.float64)
+    traffic = torch.zeros(n_labels, enc.table.shape[0], dtype=torch.float64)
     for i in range(0, len(xf), HASH_CHUNK):
         idx, w = _corner_weights(enc, xf[i:i + HASH_CHUNK])
         traffic[0].index_add_(0, idx.reshape(-1), w.reshape(-1) * free_weight)
@@ -231,19 +271,21 @@ def _entry_traffic(enc, x: Tensor, lab: Tensor, xf: Tensor, hit_weight: float,
 
 def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarray,
                      conf: str, log2_sizes: list[int], free: np.ndarray | None = None,
-                     hit_weight: float = 1.0, free_weight: float = 1.0) -> list[dict]:
+                     hit_weight: float = 1.0, free_weight: float = 1.0,
+                     names: tuple[str, ...] = LABELS) -> list[dict]:
     """Per (table size, label): the label's own share of the traffic on its entries, per
     level of the SDF's hash grid (see the module docstring).
 
     Args:
         points: (N, 3) world first hits of the pool's pixels (labels > 0 only).
-        labels: (N,) int `LABELS` indices of `points`.
+        labels: (N,) int indices into `names` of `points`.
         scale_mat: (4, 4) the scene's normalised -> world matrix (``scale_mat_0``).
         conf: the config whose ``model.sdf.encoding`` is counted.
         log2_sizes: table sizes (log2) to count.
         free: (M, 3) world sample points along the rays (the coarse samples), counted in
             every entry's traffic but no label's own; None: surface hits only.
         hit_weight, free_weight: traffic of one hit and of one free point.
+        names: the labels' names (`LABELS`, or `feature_label`'s).
     """
     from neus_l0.data.cameras import to_normalised
     from neus_l0.fields.encodings import HashGridEncoding
@@ -256,9 +298,9 @@ def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarr
     for log2 in log2_sizes:
         cfg = load_config(conf, [f"model.sdf.encoding.log2_hashmap_size={log2}"])
         enc = HashGridEncoding(cfg.model.sdf.encoding)
-        traffic = _entry_traffic(enc, x, lab, xf, hit_weight, free_weight)
+        traffic = _entry_traffic(enc, x, lab, xf, hit_weight, free_weight, len(names))
         total = traffic.sum(0).clamp_min(1e-30)  # (table rows,)
-        own = torch.zeros(len(LABELS), enc.n_levels, dtype=torch.float64)
+        own = torch.zeros(len(names), enc.n_levels, dtype=torch.float64)
         mass = torch.zeros_like(own)
         for i in range(0, len(x), HASH_CHUNK):  # recomputed: no per-hit tensors kept
             idx, w = _corner_weights(enc, x[i:i + HASH_CHUNK])
@@ -266,7 +308,7 @@ def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarr
             share = traffic[lab_c[:, None, None], idx] / total[idx]
             own.index_add_(0, lab_c, (w * share).sum(-1))
             mass.index_add_(0, lab_c, w.sum(-1))
-        for k, name in enumerate(LABELS):
+        for k, name in enumerate(names):
             if k == 0 or mass[k, 0] == 0:
                 continue
             row = {"log2 table": log2, "hashed levels": f"L{enc.n_direct}+",
@@ -330,8 +372,17 @@ def main() -> None:
                          "draws (0: no training)")
     ap.add_argument("--fraction", type=float, default=0.5, help="train.error_map.fraction")
     ap.add_argument("--tile", type=int, default=8, help="train.error_map.tile")
-    ap.add_argument("--signal", default="colour", choices=["colour", "depth"],
+    ap.add_argument("--signal", default="colour", choices=["colour", "depth", "depth_mask"],
                     help="train.error_map.signal")
+    ap.add_argument("--warmup", type=float, default=0.0, help="train.error_map.warmup")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="more config overrides for the --train-seconds run")
+    ap.add_argument("--features", action="store_true",
+                    help="label by the scene's features.json (any synthetic scene: each "
+                         "feature a label) instead of the pits-deep geometry")
+    ap.add_argument("--feature-tol", type=float, default=6.0,
+                    help="with --features: world units from a thin feature's axis segment "
+                         "that count as on it")
     ap.add_argument("--hash", type=_log2_list, default=[],
                     help="table sizes (log2, comma-separated) whose entries' own share of "
                          "surface traffic to count per label, e.g. 15,19 (empty: none)")
@@ -348,14 +399,23 @@ def main() -> None:
         bounds = static_bounds(scene, cfg, Path(tmp) / "hull.pt")
     pool = reachable_pixels(scene, cfg.render, bounds)
     pts, _, _ = first_hits(args.scene)
-    labels = label(pts)  # (V, H, W)
+    if args.features:
+        labels, names = feature_label(pts, load_features(args.scene), args.feature_tol)
+    else:
+        labels, names = label(pts), LABELS  # (V, H, W)
     pool_labels = labels.reshape(-1)[pool.pixels.numpy()]
-    views = view_table(labels, pool_labels, cfg.train.batch_size)
+    views = view_table(labels, pool_labels, cfg.train.batch_size, names)
     print(f"pool: {pool.pixels.numel()} pixels ({pool.fraction:.3f} of all), batch "
           f"{cfg.train.batch_size}\n{_markdown(views)}\n")
     budgets = [(int(a), int(b), 2) for a, b in (s.split("+") for s in args.budgets.split(",")
                                                  if s)]
-    samples = sample_table(scene, pool, pool_labels, args.rays, budgets) if budgets else []
+    source = json.loads((args.scene / "scene.json").read_text()).get("source")
+    if budgets and source not in BUILTIN_SHAPES:
+        print(f"{args.scene}: made from {source!r}, not a built-in shape: no exact SDF, so no "
+              "fine-sample table")
+        budgets = []
+    samples = (sample_table(scene, pool, pool_labels, args.rays, budgets, names, source)
+               if budgets else [])
     if samples:
         print(_markdown(samples))
     shares = []
@@ -367,17 +427,20 @@ def main() -> None:
                                      args.hash_free) if args.hash_free else (None, 1.0))
         shares = hash_share_table(flat[hit], pool_labels[hit], scale_mat, args.conf,
                                   args.hash, free,
-                                  hit_weight=max(1, args.hash_free), free_weight=free_w)
+                                  hit_weight=max(1, args.hash_free), free_weight=free_w,
+                                  names=names)
         what = (f"surface and {args.hash_free} span samples a ray" if args.hash_free
                 else "surface")
         print(f"\nown share of the {what} traffic on each label's table entries\n"
               f"{_markdown(shares)}")
     drawn = []
     if args.train_seconds > 0:
-        drawn = error_map_run(scene, args.conf, labels, args.train_seconds, args.fraction,
-                              args.tile, args.signal)
-        print(f"\nrays a step draws per feature, error map fraction {args.fraction}, tile "
-              f"{args.tile}, signal {args.signal}\n"
+        emap = [f"train.error_map.fraction={args.fraction}",
+                f"train.error_map.tile={args.tile}", f"train.error_map.signal={args.signal}",
+                f"train.error_map.warmup={args.warmup}"]
+        drawn = error_map_run(scene, args.conf, labels, args.train_seconds,
+                              [*emap, *args.set], names)
+        print(f"\nrays a step draws per feature, {' '.join([*emap, *args.set])}\n"
               f"{_markdown(drawn)}")
     if args.out:
         args.out.write_text(json.dumps({"views": views, "samples": samples, "error_map": drawn,
