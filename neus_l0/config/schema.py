@@ -378,6 +378,11 @@ class ErrorMapConfig:
     ``depth_mask`` (``depth`` plus each ray's mask error |opacity - mask|: the rays that
     still see surface outside the silhouette, or miss inside it, are drawn more, where
     ``depth`` alone starved them and left slack under an object)."""
+    weigh_all: bool = False
+    """The Eikonal and photometric terms weigh the map's rays by their importance weights
+    too (a self-normalised mean), so that every term keeps its uniform-draw expectation and
+    the map changes only which rays a step sees; off: only the colour, mask, carve and fill
+    terms are weighted, and the Eikonal and photometric terms lean to the map's rays."""
 
 
 @dataclass

@@ -255,7 +255,9 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         ray_weight: (B,) importance weights of rays drawn by an error map
             (`neus_l0.bounds.error_map`): the colour term is `weighted_color_l1` and the
             mask term the weighted mean of the rays' BCE, so both keep the pool's
-            expectation; the Eikonal term (over samples) is not weighted. None: uniform.
+            expectation; the Eikonal term (over samples) is weighted (each sample by its
+            ray's weight, a self-normalised mean) only with ``cfg.error_map.weigh_all``.
+            None: uniform.
         foreground: the pool's share of foreground pixels (with `ray_weight`).
         terms: the terms the caller computes (they need the network), () each:
             ``curvature`` (`curvature`), added with ``cfg.curvature_weight``, and ``photo``
@@ -275,11 +277,14 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         color = color_l1(pred, target_rgb, mask)
     else:
         color = weighted_color_l1(pred, target_rgb, mask, ray_weight, foreground)
+    eik_mask = out.eikonal_mask
+    if ray_weight is not None and cfg.error_map.weigh_all:
+        eik_mask = eik_mask * ray_weight[:, None].to(eik_mask.dtype)
     if cfg.eikonal_fraction < 1.0:
-        eik = eikonal_subset(out.gradients, out.eikonal_mask, cfg.eikonal_fraction, generator,
+        eik = eikonal_subset(out.gradients, eik_mask, cfg.eikonal_fraction, generator,
                              eikonal_idx)
     else:
-        eik = eikonal(out.gradients, out.eikonal_mask)
+        eik = eikonal(out.gradients, eik_mask)
     if cfg.mask_weight > 0:
         mloss = mask_bce(out.weight_sum, mask, ray_weight)
     else:

@@ -283,6 +283,8 @@ class PhotoRays:
             their pixels.
         depth: (B, 1) the rendered depth; normal: (B, 3) the rendered (unnormalised) normal.
         use: (B,) bool rays that may count (in the mask, opaque).
+        weight: (B,) the rays' importance weights (an error map's draw; None: all 1): the
+            term is their weighted mean over the counted rays.
     """
 
     origins: Tensor
@@ -292,6 +294,7 @@ class PhotoRays:
     depth: Tensor
     normal: Tensor
     use: Tensor
+    weight: Tensor | None = None
 
 
 def surface_points(sdf: Callable[[Tensor], Tensor], rays: PhotoRays, max_sdf: float
@@ -334,7 +337,8 @@ def photometric_term(ctx: PhotoContext, sdf: Callable[[Tensor], Tensor], rays: P
             homography assumes is not there).
 
     Returns:
-        the () mean cost over the counted rays (0 when none) and the () number counted.
+        the () mean cost over the counted rays (weighted by ``rays.weight`` when given; 0
+        when none) and the () number counted.
     """
     x, n, ok = surface_points(sdf, rays, cfg.max_sdf)
     pix = rays.xy.to(ctx.offsets.dtype)[:, None, :] + ctx.offsets[None]  # (B, P, 2)
@@ -366,4 +370,7 @@ def photometric_term(ctx: PhotoContext, sdf: Callable[[Tensor], Tensor], rays: P
     per_ray, any_valid = best_cost(cost, valid, ctx.best)
     counted = (ok & any_valid & ref_in.all(-1)).to(per_ray.dtype)
     total = counted.sum()
-    return (per_ray * counted).sum() / total.clamp_min(1.0), total
+    if rays.weight is None:
+        return (per_ray * counted).sum() / total.clamp_min(1.0), total
+    w = counted * rays.weight.to(per_ray.dtype)
+    return (per_ray * w).sum() / w.sum().clamp_min(1e-12), total

@@ -299,8 +299,9 @@ def silhouette_samples(inputs: StepInputs, out: RenderOutput, span: float = 0.0,
 def photo_at_rays(model: NeuSModel, inputs: StepInputs, out: RenderOutput, cfg: Config
                   ) -> Tensor:
     """The photometric term (`neus_l0.train.photometric`) on the step's rays that lie in
-    the mask and render opaque (> 0.5); the SDF pass does not count for the hash grid's
-    level schedule (it is the step's second).
+    the mask and render opaque (> 0.5), weighted by the rays' importance weights with
+    ``train.error_map.weigh_all``; the SDF pass does not count for the hash grid's level
+    schedule (it is the step's second).
 
     Returns:
         () the mean cost over the rays it counted.
@@ -310,8 +311,9 @@ def photo_at_rays(model: NeuSModel, inputs: StepInputs, out: RenderOutput, cfg: 
     def sdf(x: Tensor) -> Tensor:
         return model.sdf.forward(x, count=False)[:, 0]
 
+    weight = inputs.ray_weight if cfg.train.error_map.weigh_all else None
     rays = PhotoRays(inputs.origins, inputs.dirs, inputs.view, inputs.xy, out.depth,
-                     out.normal, use)
+                     out.normal, use, weight)
     cost, _ = photometric_term(inputs.photo, sdf, rays, cfg.train.photo)
     return cost
 

@@ -171,9 +171,11 @@ def test_the_pool_gets_a_map_only_when_asked(sphere_scene, tmp_path):
     assert pool.error_map.foreground == pytest.approx(float((scene.masks > 0.5).float().mean()))
 
 
-def test_a_run_with_the_error_map_trains(small, sphere_scene, tmp_path):
+@pytest.mark.parametrize("weigh_all", ["false", "true"])
+def test_a_run_with_the_error_map_trains(weigh_all, small, sphere_scene, tmp_path):
     scene = sphere_scene(tmp_path / "scene")
-    cfg = load_config("demo", small + ["train.iters=20", "train.error_map.fraction=0.5"])
+    cfg = load_config("demo", small + ["train.iters=20", "train.error_map.fraction=0.5",
+                                       f"train.error_map.weigh_all={weigh_all}"])
     res = train(scene, cfg, tmp_path / "run", progress=False)
     rows = [json.loads(line) for line in
             (Path(tmp_path / "run") / "metrics.jsonl").read_text().splitlines()]
@@ -224,8 +226,9 @@ def test_resume_with_the_map_equals_uninterrupted(small, sphere_scene, tmp_path)
         assert torch.equal(a["model"][k], b["model"][k]), k
 
 
-@pytest.mark.parametrize("signal", ["colour", "depth_mask"])
-def test_the_step_with_the_error_map_has_no_graph_break(signal, sphere_scene, tmp_path):
+@pytest.mark.parametrize("signal, weigh_all", [("colour", "false"), ("depth_mask", "true")])
+def test_the_step_with_the_error_map_has_no_graph_break(signal, weigh_all, sphere_scene,
+                                                        tmp_path):
     """The drawn weights enter the compiled step as a tensor; the per-ray errors leave it."""
     from neus_l0.bounds.pixel_pool import reachable_pixels
     from neus_l0.bounds.static import static_bounds
@@ -235,7 +238,8 @@ def test_the_step_with_the_error_map_has_no_graph_break(signal, sphere_scene, tm
 
     scene = sphere_scene(tmp_path / "s")
     cfg = load_config("demo", ["model.sdf.gradient=analytic", "train.error_map.fraction=0.5",
-                               f"train.error_map.signal={signal}"])
+                               f"train.error_map.signal={signal}",
+                               f"train.error_map.weigh_all={weigh_all}"])
     pool = with_error_map(reachable_pixels(scene, cfg.render, static_bounds(
         scene, cfg, tmp_path / "run" / "hull.pt")), scene, cfg)
     inputs = draw_step_inputs(scene, cfg, 3, 64, torch.Generator().manual_seed(0), pool)

@@ -1,6 +1,7 @@
 """`train.photo`: multi-view photometric consistency of the rendered surface (Geo-NeuS's NCC
 term), against plain references and on an exactly rendered textured plane."""
 
+import dataclasses
 import json
 import math
 
@@ -313,6 +314,39 @@ def test_the_term_finds_the_textured_planes_depth():
             assert h.grad.item() * sign > 0  # descent moves h towards 0
             costs.append(cost.item())
         assert costs == sorted(costs) and costs[2] > 3 * costs[0]
+
+
+def test_weighted_rays_give_the_weighted_mean_of_their_own_costs():
+    """With importance weights (an error map's rays, `train.error_map.weigh_all`) the term
+    is ``sum(w c) / sum(w)`` over the counted rays, each ray's cost ``c`` as it has alone;
+    weights of 1 give the plain mean; a ray that does not count adds nothing."""
+    scene = plane_scene()
+    ctx = PhotoContext.from_scene(scene, n_sources=3, patch=5, stride=1, best=2)
+    h = torch.tensor(0.1)  # off the true plane: each ray's cost is its texture's own
+    xy = torch.tensor([[20, 14], [30, 20], [41, 25], [25, 30], [0, 0]])
+    views = torch.zeros(5, dtype=torch.long)
+    depth = plane_depth(scene, views, xy, 0.1)
+    up = torch.tensor([[0.0, 0.0, 1.0]]).expand(5, 3)
+    alone = [photometric_term(ctx, plane_sdf(h), pixel_rays(scene, views[i:i + 1],
+                                                            xy[i:i + 1], depth[i:i + 1],
+                                                            up[:1]), PhotoConfig())
+             for i in range(5)]
+    c = torch.tensor([float(a[0]) for a in alone])
+    n = torch.tensor([float(a[1]) for a in alone])
+    assert n.tolist() == [1, 1, 1, 1, 0] and len(set(c[:4].tolist())) == 4
+    w = torch.tensor([0.3, 2.0, 0.7, 1.1, 5.0])
+    rays = pixel_rays(scene, views, xy, depth, up)
+    plain, counted = photometric_term(ctx, plane_sdf(h), rays, PhotoConfig())
+    weighted, counted_w = photometric_term(ctx, plane_sdf(h), dataclasses.replace(rays,
+                                                                               weight=w),
+                                           PhotoConfig())
+    assert counted.item() == counted_w.item() == 4
+    assert plain.item() == pytest.approx(float(c[:4].mean()), rel=1e-5)
+    assert weighted.item() == pytest.approx(float((w * c * n).sum() / (w * n).sum()),
+                                            rel=1e-5)
+    ones = dataclasses.replace(rays, weight=torch.ones(5))
+    assert photometric_term(ctx, plane_sdf(h), ones, PhotoConfig())[0].item() == \
+        pytest.approx(plain.item(), rel=1e-6)
 
 
 @settings(max_examples=60, deadline=None)
