@@ -62,7 +62,7 @@ from neus_l0.bounds.static import static_bounds
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import SamplerConfig
 from neus_l0.data.rays import rays_at
-from neus_l0.evaluation.features import load_features
+from neus_l0.evaluation.features import load_features, near_axis
 from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.experiments.oracle import first_hit
 from neus_l0.formats.neus import load_scene
@@ -117,14 +117,13 @@ def feature_label(pts: np.ndarray, features: list[dict], tol: float = 6.0
         names: ``("nothing", "open surface", *feature names)``.
     """
     out = np.where(np.isnan(pts[..., 2]), 0, 1)
+    flat = pts.reshape(-1, 3)
     for i in sorted(range(len(features)), key=lambda i: -features[i]["radius"]):
         f = features[i]
-        d = pts - f["center"]
         if f["kind"] == "thin" and f.get("axis") is not None:
-            along = np.clip(d @ f["axis"], -f["radius"], f["radius"])
-            on = np.linalg.norm(d - along[..., None] * f["axis"], axis=-1) <= tol
+            on = near_axis(flat, f, tol).reshape(out.shape)
         else:
-            on = np.linalg.norm(d, axis=-1) <= f["radius"]
+            on = np.linalg.norm(pts - f["center"], axis=-1) <= f["radius"]
         out = np.where(on, i + 2, out)
     return out, ("nothing", "open surface", *(f["name"] for f in features))
 

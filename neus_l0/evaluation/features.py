@@ -46,6 +46,23 @@ def load_features(scene_dir: str | Path) -> list[dict]:
     return feats
 
 
+def near_axis(points: np.ndarray, feature: dict, tube: float) -> np.ndarray:
+    """(N,) which of (N, 3) points lie within `tube` world units of a thin feature's axis
+    segment, ``center +- radius * axis``: the rod itself and a margin, without the ball's
+    surroundings (a cavity's floor, a seat above a leg).
+
+    Raises:
+        ValueError: the feature has no axis.
+    """
+    if feature.get("axis") is None:
+        raise ValueError(f"feature {feature.get('name')!r} has no axis")
+    axis = np.asarray(feature["axis"], dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    d = np.asarray(points, dtype=np.float64) - feature["center"]
+    along = np.clip(d @ axis, -feature["radius"], feature["radius"])
+    return np.linalg.norm(d - along[:, None] * axis, axis=1) <= tube
+
+
 def _mean_below(d: np.ndarray, max_dist: float) -> float:
     d = d[d < max_dist]
     return float(d.mean()) if len(d) else math.nan

@@ -695,3 +695,45 @@ def test_feature_label_puts_points_on_the_nearest_small_feature():
     in_pit = np.linalg.norm(many, axis=1) <= 20.0
     assert ((lab == 3) == on_rod).all()
     assert ((lab == 2) == (in_pit & ~on_rod)).all()
+
+
+def test_tube_rows_are_the_means_inside_each_rods_tube():
+    """`tube_errors.tube_rows`: each side's mean over the points in the tube, distances at or
+    past max_dist left out; features without an axis or not thin are skipped."""
+    import numpy as np
+
+    tool = _tool("tube_errors")
+    rod = {"kind": "thin", "name": "rod", "center": np.zeros(3), "radius": 10.0,
+           "axis": np.array([0.0, 0.0, 1.0])}
+    ball = {"kind": "pit", "name": "pit", "center": np.zeros(3), "radius": 50.0, "axis": None}
+    pred = np.array([[1.0, 0, 0], [0, 2.0, 5.0], [0, 0, 30.0], [4.0, 0, 0]])
+    dist_pred = np.array([0.5, 1.5, 7.0, np.inf])
+    gt = np.array([[0, 1.0, -9.0], [10.0, 0, 0]])
+    dist_gt = np.array([2.0, 0.1])
+    rows = tool.tube_rows(pred, dist_pred, gt, dist_gt, [ball, rod], tube=5.0, max_dist=20.0)
+    assert [r["feature"] for r in rows] == ["rod"]
+    r = rows[0]
+    assert r["accuracy"] == pytest.approx(1.0) and r["completeness"] == pytest.approx(2.0)
+    assert r["overall"] == pytest.approx(1.5) and (r["n_pred"], r["n_gt"]) == (3, 1)
+
+
+def test_tube_errors_of_the_true_mesh_are_small_and_grow_when_it_moves(tiny_scene, tmp_path):
+    """The demo scene's horn (radius 17, so a tube of 22): its own ground-truth mesh scores
+    about the ground-truth points' spacing in the tube; moved 4 units along x, both sides
+    grow by a unit or more and stay under the shift."""
+    import trimesh
+
+    tool = _tool("tube_errors")
+    exact = trimesh.load(tiny_scene / "gt_mesh.ply", process=False)
+    rows = tool.mesh_tubes(tiny_scene / "gt_mesh.ply", tiny_scene, 22.0, 200000)
+    horn = next(r for r in rows if r["feature"].startswith("horn"))
+    assert horn["n_pred"] > 100 and horn["n_gt"] > 50
+    # point-to-point against ground-truth points 2 units apart: about 1, not 0
+    assert horn["accuracy"] < 1.2 and horn["completeness"] < 0.6
+    exact.apply_translation([4.0, 0.0, 0.0])
+    exact.export(tmp_path / "moved.ply")
+    moved = next(r for r in tool.mesh_tubes(tmp_path / "moved.ply", tiny_scene, 22.0,
+                                            200000) if r["feature"].startswith("horn"))
+    assert horn["accuracy"] + 1.0 < moved["accuracy"] < 4.0
+    assert horn["completeness"] + 1.0 < moved["completeness"] < 4.0
+    assert tool.main([str(tiny_scene), str(tmp_path / "none.ply")]) == 2

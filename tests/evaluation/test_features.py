@@ -1,0 +1,41 @@
+"""`near_axis`: the tube crop around a thin feature's axis segment."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from neus_l0.evaluation.features import near_axis
+
+
+def _segment_distance(p, a, b) -> float:
+    """Plain float64 distance from point p to the segment [a, b] (a reference)."""
+    ab, ap = b - a, p - a
+    t = min(1.0, max(0.0, float(np.dot(ap, ab) / np.dot(ab, ab))))
+    return float(np.linalg.norm(ap - t * ab))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(0.5, 30.0), st.floats(0.1, 10.0))
+def test_near_axis_against_a_plain_segment_distance(seed, half, tube):
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    f = {"kind": "thin", "name": "rod", "center": rng.normal(size=3) * 10,
+         "radius": half, "axis": axis * rng.uniform(0.5, 3.0)}  # not unit: normalised
+    pts = f["center"] + rng.normal(size=(300, 3)) * (half + tube)
+    u = axis / np.linalg.norm(axis)
+    a, b = f["center"] - half * u, f["center"] + half * u
+    ref = np.array([_segment_distance(p, a, b) for p in pts])
+    got = near_axis(pts, f, tube)
+    clear = np.abs(ref - tube) > 1e-9
+    assert (got[clear] == (ref[clear] <= tube)).all()
+
+
+def test_near_axis_closed_form_and_no_axis():
+    f = {"kind": "thin", "name": "rod", "center": np.zeros(3), "radius": 10.0,
+         "axis": np.array([0.0, 0.0, 1.0])}
+    pts = np.array([[2.9, 0, 9.9], [3.1, 0, 0], [0, 0, 12.9], [0, 0, 13.1], [2.0, 2.0, -10.5],
+                    [np.nan, 0, 0]])
+    assert near_axis(pts, f, 3.0).tolist() == [True, False, True, False, True, False]
+    with pytest.raises(ValueError, match="no axis"):
+        near_axis(pts, {**f, "axis": None}, 3.0)
