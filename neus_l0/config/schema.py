@@ -380,9 +380,10 @@ class ErrorMapConfig:
     ``depth`` alone starved them and left slack under an object)."""
     weigh_all: bool = False
     """The Eikonal and photometric terms weigh the map's rays by their importance weights
-    too (a self-normalised mean), so that every term keeps its uniform-draw expectation and
-    the map changes only which rays a step sees; off: only the colour, mask, carve and fill
-    terms are weighted, and the Eikonal and photometric terms lean to the map's rays."""
+    too (a self-normalised mean), so that every term estimates the pool's own mean, as
+    under uniform draws, and the map changes only which rays a step sees; off: only the
+    colour, mask, carve and fill terms are weighted, and the Eikonal and photometric terms
+    lean to the map's rays."""
 
 
 @dataclass

@@ -230,6 +230,21 @@ def eikonal_indices(n: int, fraction: float, generator: torch.Generator | None,
     return torch.randint(0, max(1, n), (k,), generator=generator, device=device)
 
 
+def eikonal_term(out: RenderOutput, cfg: TrainConfig, generator: torch.Generator | None,
+                 eikonal_idx: Tensor | None, ray_weight: Tensor | None) -> Tensor:
+    """`neus_loss`'s Eikonal term: over every sample (`eikonal`) or a subset
+    (`eikonal_subset`, ``cfg.eikonal_fraction`` below 1); with an error map's (B,)
+    `ray_weight` and ``cfg.error_map.weigh_all``, each sample weighted by its ray's weight
+    (a self-normalised mean)."""
+    mask = out.eikonal_mask  # (B, N)
+    if ray_weight is not None and cfg.error_map.weigh_all:
+        mask = mask * ray_weight[:, None].to(mask.dtype)
+    if cfg.eikonal_fraction < 1.0:
+        return eikonal_subset(out.gradients, mask, cfg.eikonal_fraction, generator,
+                              eikonal_idx)
+    return eikonal(out.gradients, mask)
+
+
 def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainConfig,
               generator: torch.Generator | None = None,
               mask_scale: float | Tensor = 1.0,
@@ -277,14 +292,7 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         color = color_l1(pred, target_rgb, mask)
     else:
         color = weighted_color_l1(pred, target_rgb, mask, ray_weight, foreground)
-    eik_mask = out.eikonal_mask
-    if ray_weight is not None and cfg.error_map.weigh_all:
-        eik_mask = eik_mask * ray_weight[:, None].to(eik_mask.dtype)
-    if cfg.eikonal_fraction < 1.0:
-        eik = eikonal_subset(out.gradients, eik_mask, cfg.eikonal_fraction, generator,
-                             eikonal_idx)
-    else:
-        eik = eikonal(out.gradients, eik_mask)
+    eik = eikonal_term(out, cfg, generator, eikonal_idx, ray_weight)
     if cfg.mask_weight > 0:
         mloss = mask_bce(out.weight_sum, mask, ray_weight)
     else:
