@@ -112,14 +112,10 @@ def analyse(mesh_path: Path, scene_dir: Path, holdout: int, n_points: int) -> di
     """The whole breakdown of one mesh (see the module docstring)."""
     import trimesh
 
+    from neus_l0.evaluation.io import load_mesh
     from neus_l0.evaluation.score import ScoreSpec, load_ground_truth
 
-    try:
-        mesh = trimesh.load(mesh_path, process=False, force="mesh")
-    except (OSError, ValueError) as exc:
-        raise NeusL0Error(f"{mesh_path}: cannot read the mesh ({exc})") from exc
-    if len(mesh.faces) == 0:
-        raise NeusL0Error(f"{mesh_path}: the mesh has no faces")
+    mesh = trimesh.Trimesh(*load_mesh(mesh_path), process=False)  # NeusL0Error: unreadable
     spec = ScoreSpec(scene=scene_dir, density=0.5)
     truth = load_ground_truth(spec)  # a synthetic scene's (NeusL0Error when it is not one)
     pts, face = trimesh.sample.sample_surface_even(mesh, n_points, seed=0)

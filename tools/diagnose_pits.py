@@ -56,12 +56,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from neus_l0.atomic import atomic_write_json
 from neus_l0.bounds.pixel_pool import reachable_pixels
 from neus_l0.bounds.sphere import near_far_from_sphere
 from neus_l0.bounds.static import static_bounds
 from neus_l0.config.load import load_config
 from neus_l0.config.schema import SamplerConfig
 from neus_l0.data.rays import rays_at
+from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.features import load_features, near_axis
 from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.experiments.oracle import first_hit
@@ -270,7 +272,7 @@ def _entry_traffic(enc, x: Tensor, lab: Tensor, xf: Tensor, hit_weight: float,
 
 def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarray,
                      conf: str, log2_sizes: list[int], free: np.ndarray | None = None,
-                     hit_weight: float = 1.0, free_weight: float = 1.0,
+                     weights: tuple[float, float] = (1.0, 1.0),
                      names: tuple[str, ...] = LABELS) -> list[dict]:
     """Per (table size, label): the label's own share of the traffic on its entries, per
     level of the SDF's hash grid (see the module docstring).
@@ -283,7 +285,7 @@ def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarr
         log2_sizes: table sizes (log2) to count.
         free: (M, 3) world sample points along the rays (the coarse samples), counted in
             every entry's traffic but no label's own; None: surface hits only.
-        hit_weight, free_weight: traffic of one hit and of one free point.
+        weights: (hit, free) the traffic of one hit and of one free point.
         names: the labels' names (`LABELS`, or `feature_label`'s).
     """
     from neus_l0.data.cameras import to_normalised
@@ -297,7 +299,7 @@ def hash_share_table(points: np.ndarray, labels: np.ndarray, scale_mat: np.ndarr
     for log2 in log2_sizes:
         cfg = load_config(conf, [f"model.sdf.encoding.log2_hashmap_size={log2}"])
         enc = HashGridEncoding(cfg.model.sdf.encoding)
-        traffic = _entry_traffic(enc, x, lab, xf, hit_weight, free_weight, len(names))
+        traffic = _entry_traffic(enc, x, lab, xf, *weights, len(names))
         total = traffic.sum(0).clamp_min(1e-30)  # (table rows,)
         own = torch.zeros(len(names), enc.n_levels, dtype=torch.float64)
         mass = torch.zeros_like(own)
@@ -359,7 +361,7 @@ def _markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene", type=Path)
     ap.add_argument("--conf", default="demo")
@@ -390,16 +392,49 @@ def main() -> None:
                          "step's coarse samples; each hit then counts K, its fine samples)")
     ap.add_argument("--hash-rays", type=int, default=100000,
                     help="pool rays whose span samples --hash-free counts")
-    args = ap.parse_args()
+    return ap
+
+
+def _shape_source(scene_dir: Path) -> str | None:
+    """The built-in shape a synthetic scene was rendered from (``scene.json``'s ``source``),
+    None for a mesh file's scene or a scene without a readable ``scene.json``."""
+    try:
+        source = json.loads((scene_dir / "scene.json").read_text()).get("source")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return source if source in BUILTIN_SHAPES else None
+
+
+def _hash_rows(args, scene, pool, bounds, cfg, flat_hits: np.ndarray,
+               pool_labels: np.ndarray, names: tuple[str, ...]) -> list[dict]:
+    """`hash_share_table` for ``--hash`` (and ``--hash-free``), printed."""
+    hit = pool_labels > 0
+    free, free_w = (free_samples(scene, pool, bounds, cfg.render, args.hash_rays,
+                                 args.hash_free) if args.hash_free else (None, 1.0))
+    shares = hash_share_table(flat_hits[hit], pool_labels[hit], scene.scale_mat, args.conf,
+                              args.hash, free, (max(1, args.hash_free), free_w), names)
+    what = f"surface and {args.hash_free} span samples a ray" if args.hash_free else "surface"
+    print(f"\nown share of the {what} traffic on each label's table entries\n"
+          f"{_markdown(shares)}")
+    return shares
+
+
+def main() -> int:
+    args = _parser().parse_args()
     torch.set_num_threads(1)
     cfg = load_config(args.conf)
-    scene = load_scene(args.scene)
+    try:
+        scene = load_scene(args.scene)
+        pts, _, _ = first_hits(args.scene)
+        feats = load_features(args.scene) if args.features else None
+    except NeusL0Error as exc:
+        print(f"diagnose_pits: {exc}")
+        return 2
     with tempfile.TemporaryDirectory() as tmp:
         bounds = static_bounds(scene, cfg, Path(tmp) / "hull.pt")
     pool = reachable_pixels(scene, cfg.render, bounds)
-    pts, _, _ = first_hits(args.scene)
-    if args.features:
-        labels, names = feature_label(pts, load_features(args.scene), args.feature_tol)
+    if feats is not None:
+        labels, names = feature_label(pts, feats, args.feature_tol)
     else:
         labels, names = label(pts), LABELS  # (V, H, W)
     pool_labels = labels.reshape(-1)[pool.pixels.numpy()]
@@ -408,30 +443,17 @@ def main() -> None:
           f"{cfg.train.batch_size}\n{_markdown(views)}\n")
     budgets = [(int(a), int(b), 2) for a, b in (s.split("+") for s in args.budgets.split(",")
                                                  if s)]
-    source = json.loads((args.scene / "scene.json").read_text()).get("source")
-    if budgets and source not in BUILTIN_SHAPES:
-        print(f"{args.scene}: made from {source!r}, not a built-in shape: no exact SDF, so no "
+    source = _shape_source(args.scene)
+    if budgets and source is None:
+        print(f"{args.scene}: not rendered from a built-in shape: no exact SDF, so no "
               "fine-sample table")
         budgets = []
     samples = (sample_table(scene, pool, pool_labels, args.rays, budgets, names, source)
                if budgets else [])
     if samples:
         print(_markdown(samples))
-    shares = []
-    if args.hash:
-        flat = pts.reshape(-1, 3)[pool.pixels.numpy()]
-        hit = pool_labels > 0
-        scale_mat = scene.scale_mat
-        free, free_w = (free_samples(scene, pool, bounds, cfg.render, args.hash_rays,
-                                     args.hash_free) if args.hash_free else (None, 1.0))
-        shares = hash_share_table(flat[hit], pool_labels[hit], scale_mat, args.conf,
-                                  args.hash, free,
-                                  hit_weight=max(1, args.hash_free), free_weight=free_w,
-                                  names=names)
-        what = (f"surface and {args.hash_free} span samples a ray" if args.hash_free
-                else "surface")
-        print(f"\nown share of the {what} traffic on each label's table entries\n"
-              f"{_markdown(shares)}")
+    shares = (_hash_rows(args, scene, pool, bounds, cfg, pts.reshape(-1, 3)[pool.pixels.numpy()],
+                         pool_labels, names) if args.hash else [])
     drawn = []
     if args.train_seconds > 0:
         emap = [f"train.error_map.fraction={args.fraction}",
@@ -442,10 +464,10 @@ def main() -> None:
         print(f"\nrays a step draws per feature, {' '.join([*emap, *args.set])}\n"
               f"{_markdown(drawn)}")
     if args.out:
-        args.out.write_text(json.dumps({"views": views, "samples": samples, "error_map": drawn,
-                                        "hash_share": shares},
-                                       indent=1))
+        atomic_write_json(args.out, {"views": views, "samples": samples, "error_map": drawn,
+                                     "hash_share": shares})
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

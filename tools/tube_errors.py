@@ -26,11 +26,11 @@ The score's own protocol (`neus-l0 eval`) is not changed: these numbers sit besi
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
+from neus_l0.atomic import atomic_write_json
 from neus_l0.errors import NeusL0Error
 from neus_l0.evaluation.features import load_features, near_axis
 
@@ -67,14 +67,10 @@ def mesh_tubes(mesh_path: Path, scene: Path, tube: float, n_points: int) -> list
     import trimesh
     from scipy.spatial import cKDTree
 
+    from neus_l0.evaluation.io import load_mesh
     from neus_l0.evaluation.score import ScoreSpec, load_ground_truth
 
-    try:
-        mesh = trimesh.load(mesh_path, process=False, force="mesh")
-    except (OSError, ValueError) as exc:
-        raise NeusL0Error(f"{mesh_path}: cannot read the mesh ({exc})") from exc
-    if len(mesh.faces) == 0:
-        raise NeusL0Error(f"{mesh_path}: the mesh has no faces")
+    mesh = trimesh.Trimesh(*load_mesh(mesh_path), process=False)  # NeusL0Error: unreadable
     spec = ScoreSpec(scene=scene, density=0.5)
     truth = load_ground_truth(spec)  # NeusL0Error when the scene is not a synthetic one
     feats = load_features(scene)
@@ -98,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--points", type=int, default=1_000_000, help="points sampled per mesh")
     ap.add_argument("--json", type=Path, default=None, help="write the rows here")
     args = ap.parse_args(argv)
+    if not (args.tube > 0 and args.points > 0):
+        ap.error("--tube and --points must be positive")
     out = {}
     try:
         for mesh in args.meshes:
@@ -112,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {r['feature']} | {r['accuracy']:.3f} | {r['completeness']:.3f} | "
                   f"{r['overall']:.3f} | {r['n_pred']} | {r['n_gt']} |")
     if args.json:
-        args.json.write_text(json.dumps(out, indent=1))
+        atomic_write_json(args.json, out)
     return 0
 
 

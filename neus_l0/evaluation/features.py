@@ -38,6 +38,11 @@ def load_features(scene_dir: str | Path) -> list[dict]:
             f["center"] = np.asarray(f["center"], dtype=np.float64).reshape(3)
             f["radius"] = float(f["radius"])
             f["axis"] = None if f.get("axis") is None else np.asarray(f["axis"], np.float64)
+            if f["axis"] is not None and not (f["axis"].shape == (3,)
+                                              and np.isfinite(f["axis"]).all()
+                                              and np.linalg.norm(f["axis"]) > 0):
+                raise ValueError(f"feature {f.get('name')!r}: axis not 3 finite numbers "
+                                 "of non-zero length")
             if not (np.isfinite(f["center"]).all() and f["radius"] > 0):
                 raise ValueError(f"feature {f.get('name')!r}: centre or radius not finite "
                                  "and positive")
@@ -52,12 +57,15 @@ def near_axis(points: np.ndarray, feature: dict, tube: float) -> np.ndarray:
     surroundings (a cavity's floor, a seat above a leg).
 
     Raises:
-        ValueError: the feature has no axis.
+        ValueError: the feature has no axis, or one of zero or non-finite length.
     """
     if feature.get("axis") is None:
         raise ValueError(f"feature {feature.get('name')!r} has no axis")
     axis = np.asarray(feature["axis"], dtype=np.float64)
-    axis = axis / np.linalg.norm(axis)
+    length = float(np.linalg.norm(axis))
+    if not (np.isfinite(length) and length > 0):
+        raise ValueError(f"feature {feature.get('name')!r}: axis of length {length}")
+    axis = axis / length
     d = np.asarray(points, dtype=np.float64) - feature["center"]
     along = np.clip(d @ axis, -feature["radius"], feature["radius"])
     return np.linalg.norm(d - along[:, None] * axis, axis=1) <= tube

@@ -39,3 +39,22 @@ def test_near_axis_closed_form_and_no_axis():
     assert near_axis(pts, f, 3.0).tolist() == [True, False, True, False, True, False]
     with pytest.raises(ValueError, match="no axis"):
         near_axis(pts, {**f, "axis": None}, 3.0)
+
+
+@pytest.mark.parametrize("axis", [[0.0, 0.0, 0.0], [float("nan"), 0.0, 1.0], [1.0, 0.0]])
+def test_a_bad_axis_is_named_with_its_file(tmp_path, axis):
+    """`load_features` refuses an axis of zero length, a NaN or the wrong size, naming the
+    file and the feature; `near_axis` refuses a zero axis rather than crop nothing."""
+    import json
+
+    from neus_l0.errors import NeusL0Error
+    from neus_l0.evaluation.features import load_features
+
+    (tmp_path / "features.json").write_text(json.dumps({"features": [
+        {"kind": "thin", "name": "rod r1", "center": [0, 0, 0], "radius": 5.0,
+         "axis": axis}]}))
+    with pytest.raises(NeusL0Error, match=r"features\.json.*rod r1.*axis"):
+        load_features(tmp_path)
+    with pytest.raises(ValueError, match="axis of length"):
+        near_axis(np.zeros((2, 3)), {"name": "rod", "center": np.zeros(3), "radius": 1.0,
+                                     "axis": np.zeros(3)}, 1.0)

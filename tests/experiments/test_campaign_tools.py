@@ -281,7 +281,7 @@ def test_hash_share_is_one_for_a_lone_label_and_falls_as_the_closed_form():
     assert rods["L0 (16 cells)"] == pytest.approx(30 / 40)
 
     rows = diag.hash_share_table(pts, labels, eye, "demo", [22], np.tile(far_a, (5, 1)),
-                                 hit_weight=2.0, free_weight=3.0)
+                                 weights=(2.0, 3.0))
     floor = next(r for r in rows if r["label"] == "pit floor")
     assert floor["L3 (36 cells)"] == pytest.approx(20 / (20 + 15))
 
@@ -737,3 +737,6 @@ def test_tube_errors_of_the_true_mesh_are_small_and_grow_when_it_moves(tiny_scen
     assert horn["accuracy"] + 1.0 < moved["accuracy"] < 4.0
     assert horn["completeness"] + 1.0 < moved["completeness"] < 4.0
     assert tool.main([str(tiny_scene), str(tmp_path / "none.ply")]) == 2
+    assert tool.main([str(tiny_scene), str(tmp_path / "moved.ply"), "--points", "2000",
+                      "--json", str(tmp_path / "t.json")]) == 0
+    assert "horn r17" in (tmp_path / "t.json").read_text()
