@@ -64,7 +64,7 @@ from neus_l0.config.load import load_config
 from neus_l0.config.schema import SamplerConfig
 from neus_l0.data.rays import rays_at
 from neus_l0.errors import NeusL0Error
-from neus_l0.evaluation.features import load_features, near_axis
+from neus_l0.evaluation.features import feature_label, load_features
 from neus_l0.evaluation.synthetic import first_hits
 from neus_l0.experiments.oracle import first_hit
 from neus_l0.formats.neus import load_scene
@@ -103,31 +103,6 @@ def label(pts: np.ndarray) -> np.ndarray:
                                                                                 + TOL)
         out = np.where(on_rod, 4, out)
     return out
-
-
-def feature_label(pts: np.ndarray, features: list[dict], tol: float = 6.0
-                  ) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Label (..., 3) world points by a scene's features (``features.json``, any scene).
-
-    A thin feature with an axis is the segment ``center +- radius * axis``: a point within
-    `tol` world units of it is on the feature (a rod's radius plus a pixel or two). Any other
-    feature is its ball (the crop the scores use). Where features overlap, the smaller one
-    (by radius) wins.
-
-    Returns:
-        (...,) int labels (NaN points: 0, points on no feature: 1, feature i: i + 2) and the
-        names: ``("nothing", "open surface", *feature names)``.
-    """
-    out = np.where(np.isnan(pts[..., 2]), 0, 1)
-    flat = pts.reshape(-1, 3)
-    for i in sorted(range(len(features)), key=lambda i: -features[i]["radius"]):
-        f = features[i]
-        if f["kind"] == "thin" and f.get("axis") is not None:
-            on = near_axis(flat, f, tol).reshape(out.shape)
-        else:
-            on = np.linalg.norm(pts - f["center"], axis=-1) <= f["radius"]
-        out = np.where(on, i + 2, out)
-    return out, ("nothing", "open surface", *(f["name"] for f in features))
 
 
 def view_table(labels: np.ndarray, pool_labels: np.ndarray, batch: int,

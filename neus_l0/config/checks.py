@@ -154,6 +154,8 @@ RULES: dict[tuple[type, str], Range] = {
     (PhotoConfig, "max_sdf"): positive(),
     (PhotoConfig, "occlusion_samples"): at_least(0, "0: no occlusion test"),
     (PhotoConfig, "planar_sdf"): at_least(0, "0: no test"),
+    (PhotoConfig, "wide_sources"): at_least(0, "0: never wider"),
+    (PhotoConfig, "wide_after"): Range(0, 1),
 }
 
 
@@ -233,6 +235,9 @@ def _check_photo(obj: PhotoConfig, bad: Callable[[str, str], ConfigError]) -> No
         raise bad("patch", f"{obj.patch}: must be odd (the patch is centred on the ray's pixel)")
     if obj.best > obj.sources:
         raise bad("best", f"{obj.best}: at most train.photo.sources ({obj.sources})")
+    if 0 < obj.wide_sources <= obj.sources:
+        raise bad("wide_sources", f"{obj.wide_sources}: more than train.photo.sources "
+                  f"({obj.sources}), or 0 (never wider)")
     if obj.normal_sources > 0 and obj.occlusion_samples <= 0:
         raise bad("normal_sources", f"{obj.normal_sources}: the normal's sources stand in "
                   "when the SDF blocks the nearest; it needs train.photo.occlusion_samples > 0")

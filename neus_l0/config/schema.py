@@ -422,6 +422,14 @@ class PhotoConfig:
     this from the zero level (normalised frame) does not count: its patch straddles a rim
     (a narrow pit's opening), where the plane the patch is carried by is not there
     (0: no test)."""
+    wide_sources: int = 0
+    """With more than `sources`: this many nearest sources once the schedule reaches
+    `wide_after` (the nearest `sources` before). A cavity's floor is seen by few views and
+    its 4 nearest sources mostly see the wall: 8 give the floor's cost a minimum at the
+    truth, but from the start they unsettle training while the geometry is a blob
+    (0: never wider)."""
+    wide_after: float = 0.5
+    """Share of the schedule after which `wide_sources` count, in [0, 1]."""
 
 
 @dataclass

@@ -71,6 +71,31 @@ def near_axis(points: np.ndarray, feature: dict, tube: float) -> np.ndarray:
     return np.linalg.norm(d - along[:, None] * axis, axis=1) <= tube
 
 
+def feature_label(pts: np.ndarray, features: list[dict], tol: float = 6.0
+                  ) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Label (..., 3) world points by a scene's features (``features.json``, any scene).
+
+    A thin feature with an axis is the segment ``center +- radius * axis``: a point within
+    `tol` world units of it is on the feature (a rod's radius plus a pixel or two). Any other
+    feature is its ball (the crop the scores use). Where features overlap, the smaller one
+    (by radius) wins.
+
+    Returns:
+        (...,) int labels (NaN points: 0, points on no feature: 1, feature i: i + 2) and the
+        names: ``("nothing", "open surface", *feature names)``.
+    """
+    out = np.where(np.isnan(pts[..., 2]), 0, 1)
+    flat = pts.reshape(-1, 3)
+    for i in sorted(range(len(features)), key=lambda i: -features[i]["radius"]):
+        f = features[i]
+        if f["kind"] == "thin" and f.get("axis") is not None:
+            on = near_axis(flat, f, tol).reshape(out.shape)
+        else:
+            on = np.linalg.norm(pts - f["center"], axis=-1) <= f["radius"]
+        out = np.where(on, i + 2, out)
+    return out, ("nothing", "open surface", *(f["name"] for f in features))
+
+
 def _mean_below(d: np.ndarray, max_dist: float) -> float:
     d = d[d < max_dist]
     return float(d.mean()) if len(d) else math.nan

@@ -247,7 +247,7 @@ def _static_setup(scene: Scene, cfg: Config, run_dir: Path) -> StepSetup:
               f"{scene.n_views}: the photometric term is off", file=sys.stderr, flush=True)
     elif ph.weight > 0:
         setup.photo = PhotoContext.from_scene(scene, ph.sources, ph.patch, ph.stride, ph.best,
-                                              ph.normal_sources)
+                                              ph.normal_sources, ph.wide_sources)
     if cfg.train.fill_weight > 0 and cfg.train.fill_silhouettes and scene.has_masks:
         setup.silhouettes = Silhouettes.from_scene(scene, cfg.render.hull.margin_px)
     return setup

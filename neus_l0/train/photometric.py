@@ -56,6 +56,8 @@ class PhotoContext:
         best: how many of a ray's sources count.
         normal_sources: per ray, this many more sources chosen by its surface normal
             (`normal_views`; 0: none).
+        near: how many of the M nearest count until the term widens to all M
+            (`photometric_term`'s `wide`; 0: all M, always).
     """
 
     gray: Tensor
@@ -68,11 +70,13 @@ class PhotoContext:
     offsets: Tensor
     best: int
     normal_sources: int = 0
+    near: int = 0
 
     @classmethod
     def from_scene(cls, scene: Scene, n_sources: int, patch: int, stride: int,
-                   best: int, normal_sources: int = 0) -> PhotoContext:
-        """The context of a scene's (training) views.
+                   best: int, normal_sources: int = 0, wide_sources: int = 0) -> PhotoContext:
+        """The context of a scene's (training) views (`wide_sources` > `n_sources`: that
+        many nearest, of which `n_sources` count until the term widens).
 
         Raises:
             NeusL0Error: fewer than two views (a patch needs a second view to compare).
@@ -84,11 +88,13 @@ class PhotoContext:
         gray = (scene.images @ luma).reshape(-1).contiguous()
         rays = scene.ray_matrices
         proj = torch.linalg.inv(rays.double()).to(rays.dtype)
-        sources = nearest_views(scene.centres, n_sources)
+        sources = nearest_views(scene.centres, max(n_sources, wide_sources))
+        near = min(n_sources, sources.shape[1])
         extra = max(0, min(normal_sources, scene.n_views - 1 - sources.shape[1]))
         return cls(gray, scene.height, scene.width, rays, proj, scene.centres, sources,
                    patch_offsets(patch, stride).to(scene.images.device),
-                   max(1, min(best, sources.shape[1] + extra)), extra)
+                   max(1, min(best, near + extra)), extra,
+                   near if near < sources.shape[1] else 0)
 
 
 def nearest_views(centres: Tensor, k: int) -> Tensor:
@@ -224,6 +230,14 @@ def best_cost(cost: Tensor, valid: Tensor, k: int) -> tuple[Tensor, Tensor]:
     return (low * keep).sum(-1) / n.clamp_min(1.0), n > 0
 
 
+def widened(columns: int, near: int, m: int, wide: Tensor) -> Tensor:
+    """(columns,) bool: which source columns count, the first `near` of the `m` nearest
+    always, the rest of the nearest only where the () `wide` is over 0.5, and any columns
+    after the nearest `m` (the normal's stand-ins) always."""
+    col = torch.arange(columns, device=wide.device)
+    return (col < near) | (col >= m) | (wide > 0.5)
+
+
 def normal_fallback(valid: Tensor, blocked: Tensor, m: int) -> Tensor:
     """Which sources count when the normal's sources stand in for the nearest: a ray keeps
     its first `m` (nearest) sources as they are while the SDF leaves any of them a clear
@@ -318,7 +332,7 @@ def surface_points(sdf: Callable[[Tensor], Tensor], rays: PhotoRays, max_sdf: fl
 
 
 def photometric_term(ctx: PhotoContext, sdf: Callable[[Tensor], Tensor], rays: PhotoRays,
-                     cfg: PhotoConfig) -> tuple[Tensor, Tensor]:
+                     cfg: PhotoConfig, wide: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The term over a step's rays.
 
     Args:
@@ -335,6 +349,9 @@ def photometric_term(ctx: PhotoContext, sdf: Callable[[Tensor], Tensor], rays: P
             `planar_sdf` (> 0: a ray whose patch's plane points lie farther than this from
             the zero level does not count: the patch straddles a rim, where the plane the
             homography assumes is not there).
+        wide: () 1 once all of the context's nearest sources count, 0 while only its
+            `near` do (a tensor, so that a compiled step takes both without recompiling;
+            None: all count).
 
     Returns:
         the () mean cost over the counted rays (weighted by ``rays.weight`` when given; 0
@@ -355,6 +372,8 @@ def photometric_term(ctx: PhotoContext, sdf: Callable[[Tensor], Tensor], rays: P
     vals, inside = sample_gray(ctx.gray, ctx.height, ctx.width, src_views[..., None], uv)
     facing = ((ctx.centres[src_views] - x.detach()[:, None, :]) * n[:, None, :]).sum(-1) > 0
     valid = facing & (z > 0).all(-1) & inside.all(-1)  # (B, M [+ K])
+    if ctx.near > 0 and wide is not None:
+        valid = valid & widened(valid.shape[1], ctx.near, m, wide)
     if cfg.occlusion_samples > 0:
         blocked = occluded(sdf, x.detach(), ctx.centres[src_views], cfg.occlusion_samples,
                            OCCLUSION_START)

@@ -166,6 +166,8 @@ class StepInputs:
         curvature_idx: (k,) the samples of the curvature term (None: the term is off).
         photo: the run's `PhotoContext` (None: the photometric term is off); view: (B,) the
             rays' views and xy: (B, 2) their pixels (with `photo`).
+        photo_wide: () 1 once the term's wider sources count (``train.photo.wide_after``),
+            else 0; None when the context has no wider sources.
         empty: (B,) 1 on the rays whose mask is exactly 0 (None: carving is off,
             `train.carve_weight`).
         full: (B,) 1 on the rays whose mask is over 0.5 (None: filling is off,
@@ -193,6 +195,7 @@ class StepInputs:
     empty: Tensor | None = None
     full: Tensor | None = None
     silhouettes: Silhouettes | None = None
+    photo_wide: Tensor | None = None
 
 
 def _draw_pool(pool: PixelPool, n_rays: int, generator: torch.Generator,
@@ -241,7 +244,15 @@ def draw_step_inputs(scene: Scene, cfg: Config, iteration: float, n_rays: int,
                       anneal, mask_scale, span, pick if emap is not None else None, weight,
                       emap.foreground if emap is not None else 1.0, curv_idx, photo,
                       batch["view"] if on else None, batch["xy"] if on else None, empty, full,
-                      silhouettes if full is not None else None)
+                      silhouettes if full is not None else None,
+                      photo_widened(cfg, iteration, scene.device) if on and photo.near else None)
+
+
+def photo_widened(cfg: Config, at: float, device: torch.device | str) -> Tensor:
+    """() 1.0 from schedule iteration ``train.photo.wide_after * L`` on (L the
+    `schedule_length`), else 0.0: whether the photometric term's wider sources count."""
+    return torch.tensor(float(at >= cfg.train.photo.wide_after * schedule_length(cfg)),
+                        device=device)
 
 
 def curvature_at_samples(model: NeuSModel, origins: Tensor, dirs: Tensor, out: RenderOutput,
@@ -314,7 +325,7 @@ def photo_at_rays(model: NeuSModel, inputs: StepInputs, out: RenderOutput, cfg: 
     weight = inputs.ray_weight if cfg.train.error_map.weigh_all else None
     rays = PhotoRays(inputs.origins, inputs.dirs, inputs.view, inputs.xy, out.depth,
                      out.normal, use, weight)
-    cost, _ = photometric_term(inputs.photo, sdf, rays, cfg.train.photo)
+    cost, _ = photometric_term(inputs.photo, sdf, rays, cfg.train.photo, inputs.photo_wide)
     return cost
 
 

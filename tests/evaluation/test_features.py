@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from neus_l0.evaluation.features import near_axis
+from neus_l0.evaluation.features import feature_label, near_axis
 
 
 def _segment_distance(p, a, b) -> float:
@@ -58,3 +58,27 @@ def test_a_bad_axis_is_named_with_its_file(tmp_path, axis):
     with pytest.raises(ValueError, match="axis of length"):
         near_axis(np.zeros((2, 3)), {"name": "rod", "center": np.zeros(3), "radius": 1.0,
                                      "axis": np.zeros(3)}, 1.0)
+
+
+def test_feature_label_puts_points_on_the_nearest_small_feature():
+    """`feature_label`: a point within `tol` of a thin feature's axis segment
+    (not past its ends) takes its label, a ball feature labels its ball, the smaller of two
+    overlapping features wins, NaN points are `nothing` and the rest `open surface`."""
+    feats = [{"kind": "pit", "name": "pit", "center": np.zeros(3), "radius": 20.0,
+              "axis": np.array([0.0, 0.0, 1.0])},
+             {"kind": "thin", "name": "rod", "center": np.array([5.0, 0.0, 0.0]),
+              "radius": 10.0, "axis": np.array([0.0, 0.0, 1.0])}]
+    pts = np.array([[np.nan] * 3, [100.0, 0, 0], [-15.0, 0, 0], [5.0, 2.9, 9.0],
+                    [5.0, 3.1, 9.0], [5.0, 0.0, 12.9], [5.0, 0.0, 13.1], [40.0, 0.0, 0.0]])
+    labels, names = feature_label(pts, feats, tol=3.0)
+    assert names == ("nothing", "open surface", "pit", "rod")
+    assert labels.tolist() == [0, 1, 2, 3, 2, 3, 2, 1]
+    rng = np.random.default_rng(0)
+    many = rng.uniform(-30, 30, (2000, 3))
+    lab, _ = feature_label(many, feats, tol=3.0)
+    d = many - feats[1]["center"]
+    along = np.clip(d[:, 2], -10, 10)
+    on_rod = np.hypot(d[:, 0], d[:, 1]) ** 2 + (d[:, 2] - along) ** 2 <= 9.0
+    in_pit = np.linalg.norm(many, axis=1) <= 20.0
+    assert ((lab == 3) == on_rod).all()
+    assert ((lab == 2) == (in_pit & ~on_rod)).all()

@@ -670,33 +670,6 @@ def test_before_after_names_what_it_cannot_do(tmp_path):
     assert "is a file, not a folder" in fails("--out", str(tmp_path / "a-file"), "--dry-run")
 
 
-def test_feature_label_puts_points_on_the_nearest_small_feature():
-    """`diagnose_pits.feature_label`: a point within `tol` of a thin feature's axis segment
-    (not past its ends) takes its label, a ball feature labels its ball, the smaller of two
-    overlapping features wins, NaN points are `nothing` and the rest `open surface`."""
-    import numpy as np
-
-    diag = _tool("diagnose_pits")
-    feats = [{"kind": "pit", "name": "pit", "center": np.zeros(3), "radius": 20.0,
-              "axis": np.array([0.0, 0.0, 1.0])},
-             {"kind": "thin", "name": "rod", "center": np.array([5.0, 0.0, 0.0]),
-              "radius": 10.0, "axis": np.array([0.0, 0.0, 1.0])}]
-    pts = np.array([[np.nan] * 3, [100.0, 0, 0], [-15.0, 0, 0], [5.0, 2.9, 9.0],
-                    [5.0, 3.1, 9.0], [5.0, 0.0, 12.9], [5.0, 0.0, 13.1], [40.0, 0.0, 0.0]])
-    labels, names = diag.feature_label(pts, feats, tol=3.0)
-    assert names == ("nothing", "open surface", "pit", "rod")
-    assert labels.tolist() == [0, 1, 2, 3, 2, 3, 2, 1]
-    rng = np.random.default_rng(0)
-    many = rng.uniform(-30, 30, (2000, 3))
-    lab, _ = diag.feature_label(many, feats, tol=3.0)
-    d = many - feats[1]["center"]
-    along = np.clip(d[:, 2], -10, 10)
-    on_rod = np.hypot(d[:, 0], d[:, 1]) ** 2 + (d[:, 2] - along) ** 2 <= 9.0
-    in_pit = np.linalg.norm(many, axis=1) <= 20.0
-    assert ((lab == 3) == on_rod).all()
-    assert ((lab == 2) == (in_pit & ~on_rod)).all()
-
-
 def test_tube_rows_are_the_means_inside_each_rods_tube():
     """`tube_errors.tube_rows`: each side's mean over the points in the tube, distances at or
     past max_dist left out; features without an axis or not thin are skipped."""
@@ -740,3 +713,53 @@ def test_tube_errors_of_the_true_mesh_are_small_and_grow_when_it_moves(tiny_scen
     assert tool.main([str(tiny_scene), str(tmp_path / "moved.ply"), "--points", "2000",
                       "--json", str(tmp_path / "t.json")]) == 0
     assert "horn r17" in (tmp_path / "t.json").read_text()
+
+
+def test_map_concentration_and_effective_share_have_their_closed_forms():
+    """`map_draws`: equal errors have Gini 0 and their top 10 % holds 10 %; one tile holding
+    all has Gini 1 - 1/K; a uniform draw keeps the whole batch, and a mixed one keeps
+    ``P^2 / sum(1 / p)`` of it, as a plain loop over the pixels gives."""
+    md = _tool("map_draws")
+    flat = md.concentration(np.full(200, 3.0))
+    assert flat["gini"] == pytest.approx(0.0, abs=1e-12) and flat["top10"] == pytest.approx(0.1)
+    one = np.zeros(200)
+    one[17] = 5.0
+    c = md.concentration(one)
+    assert c["gini"] == pytest.approx(1 - 1 / 200) and c["top1"] == c["top10"] == 1.0
+    assert md.concentration(np.zeros(5)) == {"top1": 0.0, "top10": 0.0, "gini": 0.0}
+    assert md.effective_share(np.full(50, 1 / 50)) == pytest.approx(1.0)
+    rng = np.random.default_rng(0)
+    q = rng.random(50)
+    p = 0.3 / 50 + 0.7 * q / q.sum()
+    mean_w2 = sum(pi * (1 / (50 * pi)) ** 2 for pi in p)
+    assert md.effective_share(p) == pytest.approx(1 / mean_w2, rel=1e-12)
+    assert md.effective_share(p) < 1.0
+    rows = md.feature_rows(np.full(40, 1 / 40), np.arange(40.0), np.repeat([0, 1], 20),
+                           ("a", "b"))
+    assert [r["draw_vs_uniform"] for r in rows] == pytest.approx([1.0, 1.0])
+    assert [r["error_vs_mean"] for r in rows] == pytest.approx([9.5 / 19.5, 29.5 / 19.5])
+
+
+def test_map_draws_reads_a_trained_runs_map_per_feature(tiny_scene, small_overrides,
+                                                        tmp_path, capsys):
+    """A run with the error map: its rows cover the pool, the draw against uniform averages
+    to 1 over the pool's pixels, and a run without a map gets one line."""
+    from neus_l0.cli import main
+
+    md = _tool("map_draws")
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_scene), "--conf", "demo", "--out", str(run), "--quiet",
+                 "--threads", "1", *small_overrides, "train.iters=6", "train.save_every=3",
+                 "train.log_every=2", "train.error_map.fraction=0.5"]) == 0
+    rep = md.report(run, [0.5, 0.8])
+    rows = rep["features"]
+    pixels = sum(r["pixels"] for r in rows)
+    assert pixels > 100 and rows[0]["feature"] in ("nothing", "open surface")
+    assert sum(r["draw_vs_uniform"] * r["pixels"] for r in rows) / pixels == \
+        pytest.approx(1.0, abs=0.05)
+    assert [a["largest_weight"] for a in rep["at_fractions"]] == pytest.approx([2.0, 5.0])
+    plain = tmp_path / "plain"
+    assert main(["train", str(tiny_scene), "--conf", "demo", "--out", str(plain), "--quiet",
+                 "--threads", "1", *small_overrides, "train.iters=2"]) == 0
+    with pytest.raises(md.NeusL0Error, match="no error map"):
+        md.report(plain, [0.5])

@@ -34,12 +34,15 @@ from neus_l0.train.photometric import (
     plane_points,
     project,
     sample_gray,
+    widened,
 )
 from neus_l0.train.step import (
     StepSetup,
     draw_step_inputs,
     make_optimizer,
+    photo_widened,
     render_and_loss,
+    schedule_length,
     train_step,
 )
 
@@ -283,9 +286,10 @@ def plane_depth(scene: Scene, views: torch.Tensor, xy: torch.Tensor, z: float) -
 
 
 def term_on_plane(scene: Scene, ctx: PhotoContext, h: torch.Tensor,
-                  cfg: PhotoConfig | None = None, view: int = 0):
+                  cfg: PhotoConfig | None = None, view: int = 0,
+                  wide: torch.Tensor | None = None):
     """The term on a grid of view `view`'s pixels, its rendered surface at z = h + 0.003
-    (the Newton step then lands on z = h) and normal +z."""
+    (the Newton step then lands on z = h) and normal +z (`wide`: `photometric_term`'s)."""
     H, W = scene.height, scene.width
     ys, xs = torch.meshgrid(torch.arange(8, H - 8, 6), torch.arange(8, W - 8, 6),
                             indexing="ij")
@@ -294,7 +298,7 @@ def term_on_plane(scene: Scene, ctx: PhotoContext, h: torch.Tensor,
     depth = plane_depth(scene, views, xy, h.detach().item() + 0.003)
     up = torch.tensor([[0.0, 0.0, 1.0]]).expand(len(xy), 3)
     return photometric_term(ctx, plane_sdf(h), pixel_rays(scene, views, xy, depth, up),
-                            cfg or PhotoConfig())
+                            cfg or PhotoConfig(), wide)
 
 
 def test_the_term_finds_the_textured_planes_depth():
@@ -545,6 +549,9 @@ def test_the_step_with_the_term(small, sphere_scene, tmp_path):
     ("train.photo.normal_sources=-1", "normal_sources"),
     ("train.photo.normal_sources=4", "occlusion_samples"),
     ("train.photo.weight=-1", "weight"),
+    ("train.photo.wide_sources=3", "more than train.photo.sources"),
+    ("train.photo.wide_sources=-2", "wide_sources"),
+    ("train.photo.wide_after=1.5", "wide_after"),
 ])
 def test_bad_settings_are_named(override, match):
     with pytest.raises(ConfigError, match=match):
@@ -563,3 +570,69 @@ def test_a_run_logs_the_term_and_one_view_turns_it_off(small, sphere_scene, tmp_
     train(sphere_scene(tmp_path / "s1", n_views=1), cfg, tmp_path / "one", progress=False)
     assert "train.photo needs at least 2 training views" in capsys.readouterr().err
     assert all(r["photo_loss"] == 0.0 for r in read_metrics(tmp_path / "one"))
+
+
+def test_widened_columns():
+    """The first `near` of the `m` nearest count always, the rest of them once widened;
+    the normal's stand-ins after them always."""
+    assert widened(6, 2, 4, torch.tensor(0.0)).tolist() == [True, True, False, False, True,
+                                                            True]
+    assert widened(6, 2, 4, torch.tensor(1.0)).tolist() == [True] * 6
+    assert widened(3, 1, 3, torch.tensor(0.0)).tolist() == [True, False, False]
+
+
+@pytest.mark.parametrize("h", [0.0, 0.06, -0.1])
+def test_the_widening_term_is_the_nearest_ones_term_then_the_wider_ones(h):
+    """A context of 4 nearest of which 2 count until widened: before, the term and its
+    gradient are those of a context of the 2 nearest; after, those of the 4 nearest (which
+    differ from the 2's off the plane)."""
+    scene = plane_scene(n_views=7)
+    two = PhotoContext.from_scene(scene, n_sources=2, patch=5, stride=1, best=2)
+    four = PhotoContext.from_scene(scene, n_sources=4, patch=5, stride=1, best=2)
+    both = PhotoContext.from_scene(scene, n_sources=2, patch=5, stride=1, best=2,
+                                   wide_sources=4)
+    assert both.near == 2 and both.sources.shape[1] == 4 and both.best == 2
+    assert torch.equal(both.sources, four.sources) and torch.equal(both.sources[:, :2],
+                                                                   two.sources)
+    assert (two.near, four.near) == (0, 0)
+    results = {}
+    for name, ctx, wide in (("two", two, None), ("four", four, None),
+                            ("before", both, torch.tensor(0.0)),
+                            ("after", both, torch.tensor(1.0))):
+        hh = torch.tensor(h, requires_grad=True)
+        cost, counted = term_on_plane(scene, ctx, hh, wide=wide)
+        cost.backward()
+        results[name] = (cost.item(), counted.item(), hh.grad.item())
+    assert results["before"] == pytest.approx(results["two"], rel=1e-6, abs=1e-9)
+    assert results["after"] == pytest.approx(results["four"], rel=1e-6, abs=1e-9)
+    if h != 0.0:
+        assert results["two"][0] != pytest.approx(results["four"][0], rel=1e-3)
+    # no `wide` at all: every source of the context counts
+    assert term_on_plane(scene, both, torch.tensor(h))[0].item() == \
+        pytest.approx(results["four"][0], rel=1e-6, abs=1e-9)
+
+
+def test_the_step_widens_at_its_share_of_the_schedule(small, sphere_scene, tmp_path):
+    """`photo_widened` is 0 before ``wide_after * L`` and 1 from there; the step's inputs
+    carry it only when the context has wider sources, and the step has no graph break."""
+    scene = sphere_scene(tmp_path / "s")
+    cfg = load_config("demo", small + ["model.sdf.gradient=analytic",
+                                       "train.photo.wide_sources=5",
+                                       "train.photo.wide_after=0.5"])
+    half = 0.5 * schedule_length(cfg)
+    assert [photo_widened(cfg, at, "cpu").item() for at in (0, half - 1, half, 2 * half)] \
+        == [0.0, 0.0, 1.0, 1.0]
+    ph = cfg.train.photo
+    ctx = PhotoContext.from_scene(scene, ph.sources, ph.patch, ph.stride, ph.best,
+                                  wide_sources=ph.wide_sources)
+    assert ctx.near == ph.sources and ctx.sources.shape[1] == 5
+    g = torch.Generator().manual_seed(0)
+    early = draw_step_inputs(scene, cfg, 3, 64, g, None, ctx)
+    late = draw_step_inputs(scene, cfg, int(half) + 1, 64, g, None, ctx)
+    assert early.photo_wide.item() == 0.0 and late.photo_wide.item() == 1.0
+    narrow = PhotoContext.from_scene(scene, ph.sources, ph.patch, ph.stride, ph.best)
+    assert draw_step_inputs(scene, cfg, 3, 64, g, None, narrow).photo_wide is None
+    torch._dynamo.reset()
+    ex = torch._dynamo.explain(render_and_loss)(make_model(cfg), late, cfg,
+                                                build_sampler(cfg.sampler), ())
+    assert ex.graph_break_count == 0, [b.reason for b in ex.break_reasons]
