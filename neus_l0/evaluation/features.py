@@ -7,6 +7,8 @@ along its length) and ``axis`` (3,) or null. The figures crop these balls; the s
 are the numbers behind those crops: of the points the Chamfer protocol scored, the
 predicted points inside a ball give its accuracy and the ground-truth points inside it
 its completeness, each the mean of the distances below the protocol's ``max_dist``.
+`near_axis` and `feature_label` say which points lie on which feature (a rod by its axis),
+for the tools that count rays and score rods in their tubes.
 """
 
 from __future__ import annotations
