@@ -77,9 +77,11 @@ def feature_rows(prob: np.ndarray, error: np.ndarray, labels: np.ndarray,
     return rows
 
 
-def run_map(run_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, Path]:
+def run_map(run_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, Path,
+                                     list[int] | None]:
     """A run's error map on its pool: (P,) draw probabilities, (P,) each pixel's tile error,
-    (P,) flat pixel indices into the run's training views, the map's share and the scene.
+    (P,) flat pixel indices into the run's training views, the map's share, the scene and
+    the run's training views (None: every view).
 
     Raises:
         NeusL0Error: no config, checkpoint or map, or a map of another pool.
@@ -105,14 +107,13 @@ def run_map(run_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, P
         raise NeusL0Error(f"{ckpt}: its error map has other tiles than the run's pool")
     em = pool.error_map
     return (em.prob.double().numpy(), em.table_error[em.tile].numpy(), pool.pixels.numpy(),
-            em.fraction, scene_dir)
+            em.fraction, scene_dir, train)
 
 
 def report(run_dir: Path, fractions: list[float]) -> dict:
     """The tables of one run (`feature_rows`, `concentration`, and per share f the
     `effective_share`, the largest weight and the floors' draw)."""
-    prob, error, pixels, share, scene_dir = run_map(run_dir)
-    _, train = run_scene(run_dir)
+    prob, error, pixels, share, scene_dir, train = run_map(run_dir)
     hits, _, _ = first_hits(scene_dir)
     hits = hits[train] if train else hits
     labels, names = feature_label(hits, load_features(scene_dir))

@@ -763,3 +763,5 @@ def test_map_draws_reads_a_trained_runs_map_per_feature(tiny_scene, small_overri
                  "--threads", "1", *small_overrides, "train.iters=2"]) == 0
     with pytest.raises(md.NeusL0Error, match="no error map"):
         md.report(plain, [0.5])
+    with pytest.raises(md.NeusL0Error, match="run.json"):
+        md.report(tmp_path, [0.5])  # not a run folder
