@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -245,28 +245,15 @@ def eikonal_term(out: RenderOutput, cfg: TrainConfig, generator: torch.Generator
     return eikonal(out.gradients, mask)
 
 
-def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainConfig,
-              generator: torch.Generator | None = None,
-              mask_scale: float | Tensor = 1.0,
-              eikonal_idx: Tensor | None = None, ray_weight: Tensor | None = None,
-              foreground: float = 1.0,
-              terms: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
-    """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE
-    (+ curvature_weight * curvature + photo.weight * photometric consistency).
+class RayDraw(NamedTuple):
+    """How a batch's rays were drawn, as `neus_loss` reads it (the default: uniform).
 
-    Args:
-        out: `neus_l0.render.volume.render_rays` output.
-        target_rgb: (B, 3); mask: (B, 1) binary (ones when masks are unused).
-        cfg: `igr_weight`, `mask_weight`, `eikonal_fraction` (below 1: the Eikonal term
-            over a random subset of the samples, drawn from `generator`),
-            `hit_color_floor` (with masks, above 0: the colour term on `hit_color`).
-        generator: random source of the Eikonal subset.
+    Attributes:
         mask_scale: factor on the mask term: the fraction of all pixels that the batch was
             drawn from (1: uniform over every pixel, as NeuS). Pixels whose rays cannot
             reach the surface have zero opacity by construction, so their mask term is a
             constant without gradient; drawing only from the others and scaling by that
             fraction keeps NeuS's expected gradient.
-        eikonal_idx: the Eikonal subset's indices drawn beforehand (`eikonal_indices`).
         ray_weight: (B,) importance weights of rays drawn by an error map
             (`neus_l0.bounds.error_map`): the colour term is `weighted_color_l1` and the
             mask term the weighted mean of the rays' BCE, so both keep the pool's
@@ -274,6 +261,59 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
             ray's weight, a self-normalised mean) only with ``cfg.error_map.weigh_all``.
             None: uniform.
         foreground: the pool's share of foreground pixels (with `ray_weight`).
+        eikonal_idx: the Eikonal subset's indices drawn beforehand (`eikonal_indices`).
+        generator: random source of the Eikonal subset when `eikonal_idx` is None.
+    """
+
+    mask_scale: float | Tensor = 1.0
+    ray_weight: Tensor | None = None
+    foreground: float | Tensor = 1.0
+    eikonal_idx: Tensor | None = None
+    generator: torch.Generator | None = None
+
+
+#: The terms a caller computes, with the config field that weighs each and whether the mask
+#: term's scale applies (`neus_loss`'s ``terms``).
+EXTRA_TERMS = (("curvature", "curvature_weight", False), ("photo", None, False),
+               ("carve", "carve_weight", True), ("fill", "fill_weight", True))
+
+
+def add_terms(loss: Tensor, cfg: TrainConfig, terms: dict[str, Tensor],
+              mask_scale: float | Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+    """`loss` plus the caller's terms, each weighted, and each term (zeros where absent).
+
+    Args:
+        loss: () the loss so far.
+        cfg: the weights: ``curvature_weight``, ``photo.weight``, ``carve_weight`` and
+            ``fill_weight`` (the last two times `mask_scale`).
+        terms: () tensors by name (``curvature``, ``photo``, ``carve``, ``fill``).
+
+    Returns:
+        (() loss, {name: () term}).
+    """
+    each = {}
+    for name, field, scaled in EXTRA_TERMS:
+        each[name] = terms.get(name, torch.zeros_like(loss))
+        if name in terms:
+            weight = cfg.photo.weight if field is None else getattr(cfg, field)
+            loss = loss + (weight * mask_scale if scaled else weight) * each[name]
+    return loss, each
+
+
+def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainConfig,
+              draw: RayDraw | None = None,
+              terms: dict[str, Tensor] | None = None) -> dict[str, Tensor]:
+    """Every training term in one place: colour L1 + igr * Eikonal + mask_weight * mask BCE
+    (+ curvature_weight * curvature + photo.weight * photometric consistency + the carve and
+    fill terms).
+
+    Args:
+        out: `neus_l0.render.volume.render_rays` output.
+        target_rgb: (B, 3); mask: (B, 1) binary (ones when masks are unused).
+        cfg: `igr_weight`, `mask_weight`, `eikonal_fraction` (below 1: the Eikonal term
+            over a random subset of the samples), `hit_color_floor` (with masks, above 0:
+            the colour term on `hit_color`).
+        draw: how the rays were drawn (`RayDraw`; None: uniform over every pixel).
         terms: the terms the caller computes (they need the network), () each:
             ``curvature`` (`curvature`), added with ``cfg.curvature_weight``, and ``photo``
             (`neus_l0.train.photometric.photometric_term`), added with
@@ -285,41 +325,27 @@ def neus_loss(out: RenderOutput, target_rgb: Tensor, mask: Tensor, cfg: TrainCon
         dict of () tensors: ``loss``, ``color_loss``, ``eikonal_loss``, ``mask_loss``,
         ``curvature_loss``, ``photo_loss``, ``carve_loss``, ``fill_loss``, ``psnr``.
     """
+    draw = draw or RayDraw()
     pred = out.color
     if cfg.hit_color_floor > 0 and cfg.mask_weight > 0:
         pred = hit_color(out.color, out.weight_sum, cfg.hit_color_floor)
-    if ray_weight is None:
+    if draw.ray_weight is None:
         color = color_l1(pred, target_rgb, mask)
     else:
-        color = weighted_color_l1(pred, target_rgb, mask, ray_weight, foreground)
-    eik = eikonal_term(out, cfg, generator, eikonal_idx, ray_weight)
+        color = weighted_color_l1(pred, target_rgb, mask, draw.ray_weight, draw.foreground)
+    eik = eikonal_term(out, cfg, draw.generator, draw.eikonal_idx, draw.ray_weight)
     if cfg.mask_weight > 0:
-        mloss = mask_bce(out.weight_sum, mask, ray_weight)
+        mloss = mask_bce(out.weight_sum, mask, draw.ray_weight)
     else:
         mloss = torch.zeros_like(color)
-    loss = color + cfg.igr_weight * eik + cfg.mask_weight * mask_scale * mloss
-    terms = terms or {}
-    curvature_term = terms.get("curvature", torch.zeros_like(color))
-    photo_term = terms.get("photo", torch.zeros_like(color))
-    carve_term = terms.get("carve", torch.zeros_like(color))
-    fill_term = terms.get("fill", torch.zeros_like(color))
-    if "curvature" in terms:
-        loss = loss + cfg.curvature_weight * curvature_term
-    if "photo" in terms:
-        loss = loss + cfg.photo.weight * photo_term
-    if "carve" in terms:
-        loss = loss + cfg.carve_weight * mask_scale * carve_term
-    if "fill" in terms:
-        loss = loss + cfg.fill_weight * mask_scale * fill_term
+    loss = color + cfg.igr_weight * eik + cfg.mask_weight * draw.mask_scale * mloss
+    loss, each = add_terms(loss, cfg, terms or {}, draw.mask_scale)
     return {  # keys: LOSS_NAMES
         "loss": loss,
         "color_loss": color,
         "eikonal_loss": eik,
         "mask_loss": mloss,
-        "curvature_loss": curvature_term,
-        "photo_loss": photo_term,
-        "carve_loss": carve_term,
-        "fill_loss": fill_term,
+        **{f"{name}_loss": each[name] for name, _, _ in EXTRA_TERMS},
         "psnr": masked_psnr(out.color.detach(), target_rgb, mask),
     }
 

@@ -30,6 +30,7 @@ from neus_l0.sampling.upsample import Sampler, build_sampler
 from neus_l0.train.budget import ScheduleWarp
 from neus_l0.train.losses import (
     LOSS_NAMES,
+    RayDraw,
     curvature,
     eikonal_indices,
     free_space,
@@ -358,9 +359,9 @@ def render_and_loss(model: NeuSModel, inputs: StepInputs, cfg: Config, sampler: 
                                                    cfg.train.fill_middle)
         terms["fill"] = missed_rays(out.sdf, inputs.full, counted, out.weight_sum,
                                     inputs.ray_weight, cfg.train.fill_margin / out.inv_s.detach())
-    losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, mask_scale=inputs.mask_scale,
-                       eikonal_idx=inputs.eikonal_idx, ray_weight=inputs.ray_weight,
-                       foreground=inputs.foreground, terms=terms)
+    draw = RayDraw(mask_scale=inputs.mask_scale, ray_weight=inputs.ray_weight,
+                   foreground=inputs.foreground, eikonal_idx=inputs.eikonal_idx)
+    losses = neus_loss(out, inputs.rgb, inputs.mask, cfg.train, draw, terms)
     samples = out.active.sum() * out.t.shape[1]
     values = [losses[k] for k in LOSS_NAMES] + [out.inv_s, samples]  # () each, METRIC_NAMES
     errors = (None if inputs.ray_weight is None else

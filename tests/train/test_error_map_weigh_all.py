@@ -8,7 +8,7 @@ import torch
 
 from neus_l0.bounds.error_map import draw, new_error_map, refresh_table
 from neus_l0.config.load import load_config
-from neus_l0.train.losses import neus_loss
+from neus_l0.train.losses import RayDraw, neus_loss
 
 
 def _out(gradients: torch.Tensor, mask: torch.Tensor) -> SimpleNamespace:
@@ -22,8 +22,8 @@ def _eikonal(out, w, weigh_all: bool) -> float:
     cfg = load_config("demo", ["train.eikonal_fraction=1.0",
                                f"train.error_map.weigh_all={str(weigh_all).lower()}"]).train
     b = out.gradients.shape[0]
-    losses = neus_loss(out, torch.zeros(b, 3), torch.ones(b, 1), cfg, ray_weight=w,
-                       foreground=1.0)
+    losses = neus_loss(out, torch.zeros(b, 3), torch.ones(b, 1), cfg,
+                       RayDraw(ray_weight=w, foreground=1.0))
     return float(losses["eikonal_loss"])
 
 
