@@ -272,9 +272,9 @@ class RayDraw(NamedTuple):
     generator: torch.Generator | None = None
 
 
-#: The terms a caller computes, with the config field that weighs each and whether the mask
-#: term's scale applies (`neus_loss`'s ``terms``).
-EXTRA_TERMS = (("curvature", "curvature_weight", False), ("photo", None, False),
+#: The terms a caller computes (`neus_loss`'s ``terms``): each one's name, the config field
+#: that weighs it (a dotted path) and whether the mask term's scale applies.
+EXTRA_TERMS = (("curvature", "curvature_weight", False), ("photo", "photo.weight", False),
                ("carve", "carve_weight", True), ("fill", "fill_weight", True))
 
 
@@ -295,7 +295,9 @@ def add_terms(loss: Tensor, cfg: TrainConfig, terms: dict[str, Tensor],
     for name, field, scaled in EXTRA_TERMS:
         each[name] = terms.get(name, torch.zeros_like(loss))
         if name in terms:
-            weight = cfg.photo.weight if field is None else getattr(cfg, field)
+            weight = cfg
+            for part in field.split("."):  # a dotted path
+                weight = getattr(weight, part)
             loss = loss + (weight * mask_scale if scaled else weight) * each[name]
     return loss, each
 
