@@ -765,3 +765,28 @@ def test_map_draws_reads_a_trained_runs_map_per_feature(tiny_scene, small_overri
         md.report(plain, [0.5])
     with pytest.raises(md.NeusL0Error, match="run.json"):
         md.report(tmp_path, [0.5])  # not a run folder
+
+
+def test_underside_heights_ships_the_librarys_plane(tiny_scene, small_overrides, tmp_path):
+    """The ``shipped`` height is the one `underside_plane` cuts at; 2 views a vertex never
+    counts more vertices than 1; the truth's lowest point is read; a folder that is not a run
+    is named."""
+    from neus_l0.cli import main
+    from neus_l0.mesh.from_run import mesh_from_run, training_views
+    from neus_l0.mesh.underside import underside_plane
+
+    uh = _tool("underside_heights")
+    run = tmp_path / "run"
+    assert main(["train", str(tiny_scene), "--conf", "demo", "--out", str(run), "--quiet",
+                 "--threads", "1", *small_overrides, "train.iters=4"]) == 0
+    row = uh.report(run, 48)
+    mesh = mesh_from_run(run, 48).mesh
+    plane = underside_plane(mesh, *training_views(run))
+    assert plane is not None  # the sphere-like early SDF sags below what the views see
+    assert row["shipped"] == pytest.approx(plane[1])
+    assert np.allclose(row["up"], plane[0])
+    assert row["shipped"] >= row["lowest_vertex"] - row["edge"]
+    assert row["truth"] is not None and np.isfinite(row["per_view_q10"])
+    assert row["per_view_q10"] <= row["per_view_q25"]
+    with pytest.raises(uh.NeusL0Error, match="run.json"):
+        uh.report(tmp_path, 48)  # not a run folder
